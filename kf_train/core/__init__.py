@@ -1,0 +1,15 @@
+"""kf_train's pure-Python core: numpy only, no ROS imports."""
+
+from kf_train.core.estimator import EstimateStep, EstimatorSettings, TrainEstimator
+from kf_train.core.kalman import KalmanFilter, predict, update, UpdateResult
+from kf_train.core.models import (
+    constant_velocity_F, ConstantVelocityModel, PerStepNoise, POSITION_H,
+    WhiteNoiseAcceleration)
+from kf_train.core.simulation import TrainSample, TrainSeries, TrainSimulation
+
+__all__ = [
+    'ConstantVelocityModel', 'EstimateStep', 'EstimatorSettings', 'KalmanFilter',
+    'PerStepNoise', 'POSITION_H', 'TrainEstimator', 'TrainSample', 'TrainSeries',
+    'TrainSimulation', 'UpdateResult', 'WhiteNoiseAcceleration', 'constant_velocity_F',
+    'predict', 'update',
+]

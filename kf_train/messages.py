@@ -1,0 +1,95 @@
+"""
+Conversion between kf_train's plain numbers and standard ROS messages.
+
+The only module that knows message layouts. Conventions (REP 103/105):
+
+* Positions in metres along the x axis of ``frame_id`` (default ``odom``),
+  velocities in m/s, orientation identity (the body's x axis along the track), so
+  the twist, expressed in ``child_frame_id``, has the velocity in ``linear.x``.
+* 6x6 covariances are row-major over (x, y, z, rot x, rot y, rot z). Entry [0] is the
+  variance of the estimated or measured quantity; the other diagonal entries are
+  :data:`UNESTIMATED_VARIANCE` (this 1-D model does not estimate them) and the
+  off-diagonal entries 0. Odometry cannot carry the position-velocity covariance;
+  it is not published there.
+"""
+
+from typing import NamedTuple, Sequence
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from kf_train.core.estimator import NS_PER_S
+from nav_msgs.msg import Odometry
+
+UNESTIMATED_VARIANCE = 1e9
+"""Variance [m² or rad²] given to dimensions the 1-D model does not estimate."""
+
+
+class Measurement(NamedTuple):
+    """A position measurement as the estimator consumes it."""
+
+    stamp_ns: int
+    frame_id: str
+    position_m: float
+    variance_m2: float
+
+
+def stamp_to_ns(stamp: Time) -> int:
+    """Return a ROS stamp as integer nanoseconds."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int) -> Time:
+    """Return integer nanoseconds as a ROS stamp."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def covariance_6x6(first_variance: float) -> Sequence[float]:
+    """Return a row-major 6x6 covariance with ``first_variance`` at [0]."""
+    covariance = [0.0] * 36
+    for i in range(6):
+        covariance[7 * i] = UNESTIMATED_VARIANCE
+    covariance[0] = float(first_variance)
+    return covariance
+
+
+def to_measurement_msg(stamp_ns: int, frame_id: str, position_m: float,
+                       variance_m2: float) -> PoseWithCovarianceStamped:
+    """Return a position measurement with its variance in covariance[0]."""
+    msg = PoseWithCovarianceStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.pose.pose.position.x = float(position_m)
+    msg.pose.pose.orientation.w = 1.0
+    msg.pose.covariance = covariance_6x6(variance_m2)
+    return msg
+
+
+def from_measurement_msg(msg: PoseWithCovarianceStamped) -> Measurement:
+    """Return the stamp, frame, position and variance of a measurement message."""
+    return Measurement(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                       float(msg.pose.pose.position.x), float(msg.pose.covariance[0]))
+
+
+def to_odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str,
+                    position_m: float, velocity_mps: float,
+                    position_variance_m2: float,
+                    velocity_variance_m2s2: float) -> Odometry:
+    """Return an Odometry with position, velocity and their variances filled in."""
+    msg = Odometry()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = child_frame_id
+    msg.pose.pose.position.x = float(position_m)
+    msg.pose.pose.orientation.w = 1.0
+    msg.pose.covariance = covariance_6x6(position_variance_m2)
+    msg.twist.twist.linear.x = float(velocity_mps)
+    msg.twist.covariance = covariance_6x6(velocity_variance_m2s2)
+    return msg
+
+
+def to_state_odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str,
+                          x, P) -> Odometry:
+    """Return an Odometry from a [position, velocity] mean and its 2x2 covariance."""
+    return to_odometry_msg(stamp_ns, frame_id, child_frame_id, x[0], x[1],
+                           P[0][0], P[1][1])

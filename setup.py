@@ -1,0 +1,52 @@
+"""Packaging for the kf_train ament_python package."""
+
+from glob import glob
+import os
+
+from setuptools import find_packages
+from setuptools import setup
+
+package_name = 'kf_train'
+
+
+def _files(pattern):
+    """Return the regular files matching ``pattern``, sorted."""
+    return sorted(f for f in glob(pattern) if os.path.isfile(f))
+
+
+data_files = [
+    ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+    ('share/' + package_name, ['package.xml']),
+]
+_config = _files('config/*')
+if _config:
+    data_files.append(('share/' + package_name + '/config', _config))
+_presets = _files('config/presets/*.yaml')
+if _presets:
+    data_files.append(('share/' + package_name + '/config/presets', _presets))
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    package_data={package_name: ['presets/*.yaml']},
+    data_files=data_files,
+    install_requires=['setuptools', 'numpy', 'PyYAML'],
+    zip_safe=True,
+    maintainer='kf_train maintainers',
+    maintainer_email='maintainers@kf-train.example.org',
+    description=(
+        'Kalman filter estimation and prediction of a moving train: '
+        'pure-Python core, simulator and estimator nodes'
+    ),
+    license='Apache-2.0',
+    python_requires='>=3.10',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'simulator = kf_train.simulator_node:main',
+            'estimator = kf_train.estimator_node:main',
+            'kf-train = kf_train.cli:main',
+        ],
+    },
+)
