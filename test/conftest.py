@@ -1,5 +1,13 @@
 """Pytest configuration shared by the kf_train test suite."""
 
+import os
+import sys
+
+import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+import ros_helpers  # noqa: E402, I100
+
 
 def pytest_configure(config):
     """Register the markers used by the test suite."""
@@ -9,3 +17,29 @@ def pytest_configure(config):
         'slow: marks tests that take long to run',
     ):
         config.addinivalue_line('markers', marker)
+
+
+@pytest.fixture
+def domain_id(monkeypatch):
+    """Give the test its own ROS domain, confined to this host."""
+    domain = ros_helpers.next_domain_id()
+    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
+    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    return domain
+
+
+@pytest.fixture
+def ros_context(domain_id):
+    """Yield an rclpy Context of the test's own, shut down afterwards."""
+    context = ros_helpers.make_context(domain_id)
+    yield context
+    context.try_shutdown()
+
+
+@pytest.fixture
+def executor(ros_context):
+    """Yield a SingleThreadedExecutor bound to the test's context."""
+    from rclpy.executors import SingleThreadedExecutor
+    executor = SingleThreadedExecutor(context=ros_context)
+    yield executor
+    executor.shutdown()

@@ -3,13 +3,13 @@
 from kf_train.core.estimator import EstimateStep, EstimatorSettings, TrainEstimator
 from kf_train.core.kalman import KalmanFilter, predict, update, UpdateResult
 from kf_train.core.models import (
-    constant_velocity_F, ConstantVelocityModel, PerStepNoise, POSITION_H,
-    WhiteNoiseAcceleration)
+    constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearModel,
+    PerStepNoise, POSITION_H, WhiteNoiseAcceleration)
 from kf_train.core.simulation import TrainSample, TrainSeries, TrainSimulation
 
 __all__ = [
-    'ConstantVelocityModel', 'EstimateStep', 'EstimatorSettings', 'KalmanFilter',
+    'ConstantVelocityModel', 'EstimateStep', 'LinearModel', 'EstimatorSettings', 'KalmanFilter',
     'PerStepNoise', 'POSITION_H', 'TrainEstimator', 'TrainSample', 'TrainSeries',
     'TrainSimulation', 'UpdateResult', 'WhiteNoiseAcceleration', 'constant_velocity_F',
-    'predict', 'update',
+    'constant_velocity_model', 'predict', 'update',
 ]

@@ -20,8 +20,8 @@ Initialisation:
 from dataclasses import dataclass
 from typing import NamedTuple, Optional, Sequence, Tuple
 
-from kf_train.core.kalman import KalmanFilter, UpdateResult
-from kf_train.core.models import ConstantVelocityModel, POSITION_H, WhiteNoiseAcceleration
+from kf_train.core.kalman import UpdateResult
+from kf_train.core.models import constant_velocity_model, LinearModel, WhiteNoiseAcceleration
 from kf_train.core.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
 
@@ -105,15 +105,21 @@ class TrainEstimator:
     def __init__(self, settings: EstimatorSettings = EstimatorSettings()):
         """Validate ``settings``; the filter starts uninitialised."""
         self.settings = settings.validated()
-        self.model = ConstantVelocityModel(
-            WhiteNoiseAcceleration(settings.process_noise_density))
-        self._filter: Optional[KalmanFilter] = None
+        self.model = self._make_model(settings)
+        self._x: Optional[np.ndarray] = None
+        self._P: Optional[np.ndarray] = None
         self._last_stamp_ns: Optional[int] = None
+
+    @staticmethod
+    def _make_model(settings: EstimatorSettings) -> LinearModel:
+        """Return the constant-velocity model the settings describe."""
+        return constant_velocity_model(
+            WhiteNoiseAcceleration(settings.process_noise_density))
 
     @property
     def initialized(self) -> bool:
         """Return whether a measurement has been fused since start or reset."""
-        return self._filter is not None
+        return self._x is not None
 
     @property
     def last_stamp_ns(self) -> Optional[int]:
@@ -123,9 +129,9 @@ class TrainEstimator:
     @property
     def state(self) -> Optional[Tuple[np.ndarray, np.ndarray]]:
         """Return a copy of (x, P), or None before the first measurement."""
-        if self._filter is None:
+        if self._x is None:
             return None
-        return self._filter.x, self._filter.P
+        return self._x.copy(), self._P.copy()
 
     def reconfigure(self, settings: EstimatorSettings) -> None:
         """
@@ -135,13 +141,12 @@ class TrainEstimator:
         next (re)initialisation.
         """
         settings = settings.validated()
-        self.model = ConstantVelocityModel(
-            WhiteNoiseAcceleration(settings.process_noise_density))
+        self.model = self._make_model(settings)
         self.settings = settings
 
     def reset(self) -> None:
         """Forget the state; the next measurement initialises the filter again."""
-        self._filter = None
+        self._x = self._P = None
         self._last_stamp_ns = None
 
     def measurement_variance(self, message_variance_m2: float) -> float:
@@ -161,33 +166,29 @@ class TrainEstimator:
         if not np.isfinite(position_m):
             raise ValueError(f'position must be finite, got {position_m}')
         s = self.settings
+        R_matrix = np.array([[R]])
         update_result = None
-        if self._filter is None:
+        if self._x is None:
             if s.initialization == 'prior':
-                kf = KalmanFilter(s.initial_state,
-                                  covariance_from_list('initial_covariance',
-                                                       s.initial_covariance, 2))
-                update_result = self._predict_update(kf, s.nominal_period_s, position_m, R)
+                x, P = self.model.predict(
+                    s.initial_state,
+                    covariance_from_list('initial_covariance', s.initial_covariance, 2),
+                    s.nominal_period_s)
+                x, P, update_result = self.model.update(x, P, [position_m], R_matrix)
             else:
-                kf = KalmanFilter([position_m, s.initial_state[1]],
-                                  np.diag([R, s.first_velocity_std_mps ** 2]))
+                x = np.array([position_m, s.initial_state[1]], dtype=float)
+                P = np.diag([R, s.first_velocity_std_mps ** 2])
         else:
             if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
                 raise ValueError(
                     f'measurement stamp {stamp_ns} ns is not newer than the last fused '
                     f'one, {self._last_stamp_ns} ns')
-            kf = self._filter.copy()
             dt_s = (stamp_ns - self._last_stamp_ns) / NS_PER_S
-            update_result = self._predict_update(kf, dt_s, position_m, R)
-        predicted_x, predicted_P = kf.predict_ahead(self.model.F(s.horizon_s),
-                                                    self.model.Q(s.horizon_s))
+            x, P = self.model.predict(self._x, self._P, dt_s)
+            x, P, update_result = self.model.update(x, P, [position_m], R_matrix)
+        predicted_x, predicted_P = self.model.predict(x, P, s.horizon_s)
         # Commit only now: every failure above left the old state in place.
-        self._filter, self._last_stamp_ns = kf, int(stamp_ns)
-        return EstimateStep(int(stamp_ns), kf.x, kf.P, update_result,
+        self._x, self._P, self._last_stamp_ns = x, P, int(stamp_ns)
+        return EstimateStep(int(stamp_ns), x.copy(), P.copy(), update_result,
                             int(stamp_ns) + seconds_to_ns(s.horizon_s),
                             predicted_x, predicted_P)
-
-    def _predict_update(self, kf: KalmanFilter, dt_s: float, position_m: float,
-                        R: float) -> UpdateResult:
-        kf.predict(self.model.F(dt_s), self.model.Q(dt_s))
-        return kf.update([position_m], POSITION_H, [[R]])

@@ -17,7 +17,8 @@ Two ways to give the process noise, both producing Q(dt) for any dt >= 0:
 import math
 from typing import Union
 
-from kf_train.core.validation import as_covariance, as_duration
+from kf_train.core import kalman
+from kf_train.core.validation import as_covariance, as_duration, as_matrix
 import numpy as np
 
 
@@ -110,3 +111,55 @@ class ConstantVelocityModel:
 
 # H for a position-only measurement of [position, velocity].
 POSITION_H = np.array([[1.0, 0.0]])
+
+
+class LinearModel:
+    """
+    A linear-Gaussian model: what a filter needs to predict and update.
+
+    ``F``, ``Q`` and ``B`` are callables of dt [s] (``B`` may be None for no control);
+    ``H`` and the default measurement noise ``R`` are fixed matrices. Names label the
+    state, measurement and control components (used by replay output columns).
+    """
+
+    def __init__(self, F, Q, H, R, *, B=None, state_names=('position', 'velocity'),
+                 measurement_names=('position',), control_names=()):
+        """Store the model; H and R are checked against the names' dimensions."""
+        self.F, self.Q, self.B = F, Q, B
+        self.state_names = tuple(state_names)
+        self.measurement_names = tuple(measurement_names)
+        self.control_names = tuple(control_names)
+        n, m = len(self.state_names), len(self.measurement_names)
+        self.H = as_matrix('H', H, m, n)
+        self.R = as_covariance('R', R, m)
+        if (B is None) != (not self.control_names):
+            raise ValueError('B must be given exactly when control_names are')
+
+    @property
+    def dim_x(self) -> int:
+        """Return the number of state components."""
+        return len(self.state_names)
+
+    @property
+    def dim_z(self) -> int:
+        """Return the number of measurement components."""
+        return len(self.measurement_names)
+
+    def predict(self, x, P, dt_s: float, u=None):
+        """Return (x, P) predicted over dt_s with control u (required iff B is set)."""
+        if self.B is None:
+            if u is not None:
+                raise ValueError('u given to a model without control input')
+            return kalman.predict(x, P, self.F(dt_s), self.Q(dt_s))
+        if u is None:
+            raise ValueError(f'u ({", ".join(self.control_names)}) is required')
+        return kalman.predict(x, P, self.F(dt_s), self.Q(dt_s), self.B(dt_s), u)
+
+    def update(self, x, P, z, R=None):
+        """Return (x, P, UpdateResult) after measurement z; R defaults to the model's."""
+        return kalman.update(x, P, z, self.H, self.R if R is None else R)
+
+
+def constant_velocity_model(noise: 'ProcessNoise', R=1.0) -> LinearModel:
+    """Return the 1-D constant-velocity model measuring position with variance R."""
+    return LinearModel(constant_velocity_F, noise, POSITION_H, [[float(R)]])

@@ -1,0 +1,60 @@
+"""Helpers for ROS tests: isolated domains, per-test contexts, bounded waits."""
+
+import itertools
+import os
+import time
+from typing import Callable, Dict
+
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import Executor
+
+# Fast DDS derives ports from the domain id; 1..100 stays in the valid range.
+_DOMAIN_COUNT = 100
+_counter = itertools.count()
+_base = (os.getpid() * 7919 + int(time.time())) % _DOMAIN_COUNT
+
+
+def next_domain_id() -> int:
+    """Return a domain id unlikely to be used by another test or a parallel run."""
+    return 1 + (_base + next(_counter)) % _DOMAIN_COUNT
+
+
+def isolated_env(domain_id: int) -> Dict[str, str]:
+    """Return os.environ for a subprocess confined to ``domain_id`` on this host."""
+    env = dict(os.environ)
+    env['ROS_DOMAIN_ID'] = str(domain_id)
+    env['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    env.pop('ROS_STATIC_PEERS', None)
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def make_context(domain_id: int) -> Context:
+    """Return an initialised rclpy Context on ``domain_id``."""
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    context = Context()
+    rclpy.init(context=context, domain_id=domain_id)
+    return context
+
+
+def spin_until(executor: Executor, condition: Callable[[], bool],
+               timeout_s: float = 10.0) -> bool:
+    """Spin until ``condition()`` holds or ``timeout_s`` passes; return whether it held."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        executor.spin_once(timeout_sec=0.05)
+    return True
+
+
+def wait_until(condition: Callable[[], bool], timeout_s: float = 10.0,
+               poll_s: float = 0.05) -> bool:
+    """Poll ``condition()`` without spinning until it holds or ``timeout_s`` passes."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(poll_s)
+    return True
