@@ -1,4 +1,5 @@
-"""The ``kf-train`` umbrella command: ``kf-train <command> [arguments]``.
+"""
+The ``kf-train`` umbrella command: ``kf-train <command> [arguments]``.
 
 Each command lives in its own module with a ``main(argv) -> int``; modules are
 imported only when their command runs, so that starting a node never pays for
