@@ -27,6 +27,8 @@ def running_average(values, window: int = 5) -> np.ndarray:
     v = as_vector('values', values)
     if not isinstance(window, (int, np.integer)) or window < 1:
         raise ValueError(f'window must be a positive integer, got {window!r}')
+    if v.shape[0] == 0:
+        return v  # 'valid' below would give |(w - 1) - w| + 1 = 2 values, not 0
     padded = np.concatenate((np.zeros(window - 1), v))
     sums = np.convolve(padded, np.ones(window), mode='valid')
     return sums / window
