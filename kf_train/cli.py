@@ -15,6 +15,8 @@ COMMANDS = {
     'simulator': ('kf_train.simulator_node', 'run the simulator node (ROS arguments follow)'),
     'estimator': ('kf_train.estimator_node', 'run the estimator node (ROS arguments follow)'),
     'demo': ('kf_train.demo', 'run seed 000 over DDS with both nodes and print a report'),
+    'replay': ('kf_train.replay', 'run a preset filter over a CSV of measurements, offline'),
+    'plot': ('kf_train.plotting', "write PNG figures: the seeds' scenarios or a replay"),
 }
 
 
