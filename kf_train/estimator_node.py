@@ -4,27 +4,92 @@ The ``estimator`` node: a Kalman filter on ``measurement``, estimates and predic
 Subscribes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped, best-effort
 depth 10, so it matches reliable and best-effort publishers). dt comes from the
 message stamps, never from arrival times. After each fused measurement it publishes
-``estimate`` (nav_msgs/Odometry, stamped with the measurement's stamp) and
-``prediction`` (the state ``horizon_s`` ahead, stamped stamp + horizon_s).
-All the mathematics is in :mod:`kf_train.core.estimator`.
+``estimate`` (nav_msgs/Odometry, stamped with the newest fused stamp) and
+``prediction`` (the state ``horizon_s`` ahead, stamped that stamp + horizon_s).
+All the mathematics, and every check of the input contract, is in
+:mod:`kf_train.core.estimator`; this node counts, logs and publishes.
+
+Robustness (see the core module for the exact rules):
+
+* Rejected measurements (bad numbers, zero/duplicate/stale/future stamps, wrong
+  frame, χ² outliers) leave the filter unchanged; they are counted by reason in
+  ``/diagnostics`` and logged at most once per ``WARN_THROTTLE_S`` per reason.
+* Out-of-sequence measurements younger than ``history_s`` are fused by rewinding and
+  replaying; the estimate is then republished at the newest stamp, corrected.
+* Resets, each logged and counted by reason: ``~/reset`` (manual), ``~/set_state``,
+  a backwards jump of the node clock (``reset_on_clock_jump``; e.g. a bag loop with
+  ``use_sim_time``), ``restart_after_stale`` stale stamps in a row (the stream
+  restarted), ``max_consecutive_outliers`` gate rejections in a row, and a non-finite
+  output (never published).
+* No fused measurement for ``timeout_s``: ``/diagnostics`` goes to WARN and the node
+  logs it once (and again once measurements resume).
+
+Other interfaces:
+
+* ``innovation`` (geometry_msgs/Vector3Stamped, one per gate decision, accepted or
+  rejected, stamped with the measurement's stamp, frame ``frame_id``):
+  ``vector.x`` = innovation y = z - H x⁻ [m], ``vector.y`` = its variance
+  S = H P⁻ Hᵀ + R [m²], ``vector.z`` = NIS y²/S [-]; rejected ones have
+  NIS > ``gate_threshold`` (in the diagnostics). For live tuning:
+  ``ros2 topic echo /innovation``.
+* ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``
+  on the steady clock): one status ``<node name>: filter``, level OK or WARN, with the
+  input rate, last measurement age, counts (received, fused, rejected.<reason>,
+  resets.<reason>), the mean NIS over the last ``nis_window`` updates against its
+  χ² 99% bounds (WARN "inconsistent: noise parameters too small/large"), the gate
+  threshold and the covariance condition number.
+* ``~/reset`` (std_srvs/srv/Trigger): forget the state; the next measurement
+  initialises the filter.
+* ``~/set_state`` (nav_msgs/Odometry, reliable): set the state to position
+  ``pose.pose.position.x`` [m] and velocity ``twist.twist.linear.x`` [m/s] with
+  covariance diag(``pose.covariance[0]``, ``twist.covariance[0]``), valid at
+  ``header.stamp`` (0: the newest fused stamp, or now before any); ``header.frame_id``
+  must be empty or ``frame_id``. Refusals are logged and counted.
+
+Every parameter can be changed at runtime; a change is validated as a whole and
+refused with a reason (the old values stay). Noise and gate changes apply from the
+next measurement and restart the NIS window.
 """
 
+import collections
 import dataclasses
+import math
+import time
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train import messages
-from kf_train.core.estimator import EstimatorSettings, INITIALIZATIONS, TrainEstimator
+from kf_train.core.chi2 import chi2_mean_bounds
+from kf_train.core.estimator import (
+    EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
+    MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S, Rejected,
+    RESTART_AFTER_STALE_RANGE, TrainEstimator)
 from kf_train.parameters import BIG, declare
-from kf_train.runner import run, StartupError
+from kf_train.runner import executor_option, run, StartupError
 from nav_msgs.msg import Odometry
+import numpy as np
 from rcl_interfaces.msg import SetParametersResult
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from std_srvs.srv import Trigger
 
 QOS_DEPTH = 10
 WARN_THROTTLE_S = 5.0
-DEFAULTS = EstimatorSettings()
+# The node turns on what the seed-faithful core defaults leave off: out-of-sequence
+# fusion and a χ² gate that rejects a valid measurement once in 10⁴.
+DEFAULTS = dataclasses.replace(EstimatorSettings(), history_s=1.0, gate_probability=0.9999)
+SETTING_NAMES = frozenset(field.name for field in dataclasses.fields(EstimatorSettings))
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
+NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
+                            'gate_probability'))
+CONSISTENCY_CONFIDENCE = 0.99
+# Condition number of P above which the diagnostics warn: beyond ~1e12 a double
+# keeps only a few significant digits of the smaller eigen-direction.
+MAX_CONDITION = 1e12
+TIMEOUT_RANGE = (1e-3, 86400.0)
+DIAGNOSTICS_PERIOD_RANGE = (0.01, 3600.0)
+NIS_WINDOW_RANGE = (1, 1_000_000)
 
 
 class EstimatorNode(Node):
@@ -33,9 +98,75 @@ class EstimatorNode(Node):
     def __init__(self, **kwargs):
         """Declare parameters, build the filter and wire the topics."""
         super().__init__('estimator', **kwargs)
+        values = self._declare_settings()
+        self.frame_id = declare(self, 'frame_id', 'odom',
+                                'header.frame_id of estimate, prediction and innovation '
+                                '(REP 105).', constraints='a non-empty frame name')
+        self.child_frame_id = declare(self, 'child_frame_id', 'base_link',
+                                      'child_frame_id of estimate and prediction.',
+                                      constraints='a non-empty frame name')
+        self.timeout_s = declare(
+            self, 'timeout_s', 1.0,
+            'Without a fused measurement for this long [s] the diagnostics go to WARN '
+            'and the node logs it once.', float_range=TIMEOUT_RANGE)
+        self.diagnostics_period_s = declare(
+            self, 'diagnostics_period_s', 1.0,
+            'Period of /diagnostics [s], on the steady clock.',
+            float_range=DIAGNOSTICS_PERIOD_RANGE)
+        nis_window = declare(
+            self, 'nis_window', 100,
+            'How many of the latest updates the mean NIS in /diagnostics is taken over.',
+            int_range=NIS_WINDOW_RANGE)
+        self.reset_on_clock_jump = declare(
+            self, 'reset_on_clock_jump', True,
+            'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
+            'loop, a simulation reset).', constraints='true or false')
+        try:
+            settings = EstimatorSettings(
+                **{name: _setting_value(name, value) for name, value in values.items()})
+            self.estimator = TrainEstimator(settings)
+        except ValueError as error:
+            raise StartupError(f'invalid parameter: {error}') from None
+        if not self.frame_id or not self.child_frame_id:
+            raise StartupError('invalid parameter: frame_id and child_frame_id must not '
+                               'be empty')
+
+        self.received = 0
+        self.fused = 0
+        self.rejected = 0
+        self.set_state_refused = 0
+        self.innovations = 0
+        self._nis = collections.deque(maxlen=nis_window)
+        self._bounds_cache = {}
+        self._warned = {}
+        self._start_mono = self._tick_mono = time.monotonic()
+        self._last_fused_mono = None
+        self._received_at_tick = self._fused_at_tick = 0
+        self._timed_out = False
+        self._last_clock_ns = 0
+        self._last_diagnostics = None
+
+        qos = QoSProfile(depth=QOS_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.subscription = self.create_subscription(
+            PoseWithCovarianceStamped, 'measurement', self._on_measurement, qos)
+        self.estimate_pub = self.create_publisher(Odometry, 'estimate', QOS_DEPTH)
+        self.prediction_pub = self.create_publisher(Odometry, 'prediction', QOS_DEPTH)
+        self.innovation_pub = self.create_publisher(Vector3Stamped, 'innovation', QOS_DEPTH)
+        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                                     QOS_DEPTH)
+        self.set_state_subscription = self.create_subscription(
+            Odometry, '~/set_state', self._on_set_state, QOS_DEPTH)
+        self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset_request)
+        self._diagnostics_timer = self.create_timer(
+            self.diagnostics_period_s, self._on_diagnostics_timer,
+            clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+    def _declare_settings(self) -> dict:
+        """Declare the parameters that configure the core estimator; return their values."""
         live = 'Takes effect from the next measurement.'
         at_init = 'Used when the filter (re)initialises.'
-        values = {
+        return {
             'initial_state': declare(
                 self, 'initial_state', list(DEFAULTS.initial_state),
                 'Initial [position m, velocity m/s]; in first_measurement mode only the '
@@ -72,72 +203,260 @@ class EstimatorNode(Node):
                 self, 'first_velocity_std_mps', DEFAULTS.first_velocity_std_mps,
                 'first_measurement mode: standard deviation of the initial velocity '
                 '[m/s]. ' + at_init, float_range=(1e-6, 1e6)),
+            'history_s': declare(
+                self, 'history_s', DEFAULTS.history_s,
+                'Out-of-sequence window [s]: a measurement older than the newest fused one '
+                'by less than this is fused by rewinding and replaying; older ones are '
+                'rejected as stale. 0 accepts only increasing stamps. ' + live,
+                float_range=HISTORY_S_RANGE),
+            'gate_probability': declare(
+                self, 'gate_probability', DEFAULTS.gate_probability,
+                'χ² gate: a measurement whose NIS exceeds the χ²(1) quantile of this '
+                'probability is rejected as an outlier; 1 disables the gate. ' + live,
+                float_range=GATE_PROBABILITY_RANGE),
+            'max_consecutive_outliers': declare(
+                self, 'max_consecutive_outliers', DEFAULTS.max_consecutive_outliers,
+                'After this many gate (or numerical) rejections in a row the filter '
+                'resets and the next measurement initialises it. ' + live,
+                int_range=MAX_CONSECUTIVE_OUTLIERS_RANGE),
+            'restart_after_stale': declare(
+                self, 'restart_after_stale', DEFAULTS.restart_after_stale,
+                'After this many stale measurements in a row the stream counts as '
+                'restarted: the filter resets and initialises from the last one. ' + live,
+                int_range=RESTART_AFTER_STALE_RANGE),
+            'max_future_s': declare(
+                self, 'max_future_s', DEFAULTS.max_future_s,
+                'A stamp more than this [s] ahead of the node clock is rejected (not '
+                'checked while a simulated clock is still 0). ' + live,
+                float_range=MAX_FUTURE_S_RANGE),
+            'expected_frame_id': declare(
+                self, 'expected_frame_id', DEFAULTS.expected_frame_id,
+                "Required header.frame_id of measurements; '' accepts any. " + live,
+                constraints="a frame name, or '' for any"),
         }
-        self.frame_id = declare(self, 'frame_id', 'odom',
-                                'header.frame_id of estimate and prediction (REP 105).',
-                                constraints='a non-empty frame name')
-        self.child_frame_id = declare(self, 'child_frame_id', 'base_link',
-                                      'child_frame_id of estimate and prediction.',
-                                      constraints='a non-empty frame name')
-        try:
-            settings = EstimatorSettings(
-                **{name: _setting_value(name, value) for name, value in values.items()})
-            self.estimator = TrainEstimator(settings)
-        except ValueError as error:
-            raise StartupError(f'invalid parameter: {error}') from None
-        if not self.frame_id or not self.child_frame_id:
-            raise StartupError('invalid parameter: frame_id and child_frame_id must not '
-                               'be empty')
-        self.add_on_set_parameters_callback(self._on_set_parameters)
 
-        self.received = 0
-        self.fused = 0
-        self.rejected = 0
-        qos = QoSProfile(depth=QOS_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
-        self.subscription = self.create_subscription(
-            PoseWithCovarianceStamped, 'measurement', self._on_measurement, qos)
-        self.estimate_pub = self.create_publisher(Odometry, 'estimate', QOS_DEPTH)
-        self.prediction_pub = self.create_publisher(Odometry, 'prediction', QOS_DEPTH)
+    # -- parameters -------------------------------------------------------------------
 
     def _on_set_parameters(self, parameters) -> SetParametersResult:
         """Validate a change as a whole; apply it only if all of it is valid."""
         changes = {}
-        frames = {}
+        node_values = {}
         for parameter in parameters:
-            if parameter.name in FRAME_PARAMETERS:
-                if not parameter.value:
-                    return SetParametersResult(
-                        successful=False, reason=f'{parameter.name} must not be empty')
-                frames[parameter.name] = parameter.value
-            elif hasattr(DEFAULTS, parameter.name):
-                changes[parameter.name] = _setting_value(parameter.name, parameter.value)
+            name, value = parameter.name, parameter.value
+            if name in FRAME_PARAMETERS and not value:
+                return SetParametersResult(successful=False, reason=f'{name} must not be empty')
+            if name in SETTING_NAMES:
+                changes[name] = value
+            elif name in FRAME_PARAMETERS or name in (
+                    'timeout_s', 'diagnostics_period_s', 'nis_window', 'reset_on_clock_jump'):
+                node_values[name] = value
         try:
+            changes = {name: _setting_value(name, value) for name, value in changes.items()}
             settings = dataclasses.replace(self.estimator.settings, **changes).validated()
-        except ValueError as error:
+        except (ValueError, TypeError) as error:
             return SetParametersResult(successful=False, reason=str(error))
         self.estimator.reconfigure(settings)
-        for name, value in frames.items():
+        for name, value in node_values.items():
+            if name == 'nis_window':
+                self._nis = collections.deque(self._nis, maxlen=value)
+            elif name == 'diagnostics_period_s':
+                self._diagnostics_timer.timer_period_ns = int(value * NS_PER_S)
+                self._diagnostics_timer.reset()
             setattr(self, name, value)
+        if NOISE_AND_GATE & changes.keys():
+            self._nis.clear()  # the old NIS values judged the old tuning
         return SetParametersResult(successful=True)
 
+    # -- measurements -----------------------------------------------------------------
+
     def _on_measurement(self, msg: PoseWithCovarianceStamped) -> None:
-        """Fuse one measurement and publish the estimate and the prediction."""
+        """Fuse one measurement and publish the estimate, the prediction, the innovation."""
         self.received += 1
         measurement = messages.from_measurement_msg(msg)
+        now_ns = self._check_clock()
         try:
-            step = self.estimator.process(measurement.stamp_ns, measurement.position_m,
-                                          measurement.variance_m2)
-        except ValueError as error:
+            step = self.estimator.process(
+                measurement.stamp_ns, measurement.position_m, measurement.variance_m2,
+                frame_id=measurement.frame_id, now_ns=now_ns)
+        except Rejected as rejection:
             self.rejected += 1
-            self.get_logger().warning(f'measurement rejected: {error}',
-                                      throttle_duration_sec=WARN_THROTTLE_S)
+            self._warn_rejection(rejection.reason, str(rejection))
+            if rejection.update is not None:
+                self._publish_innovation(measurement.stamp_ns, rejection.update)
+            if rejection.reset is not None:
+                self._after_reset(rejection.reset, str(rejection))
+            return
+        if step.reset is not None:
+            self._after_reset(step.reset, f'measurement at {measurement.stamp_ns} ns '
+                              'initialises it')
+        if not (np.isfinite(step.x).all() and np.isfinite(step.P).all()
+                and np.isfinite(step.predicted_x).all()
+                and np.isfinite(step.predicted_P).all()):
+            # The core never produces this; if it ever did, nothing non-finite leaves.
+            self.estimator.reset('non_finite')
+            self._after_reset('non_finite', 'a non-finite state was not published')
             return
         self.fused += 1
+        self._last_fused_mono = time.monotonic()
         self.estimate_pub.publish(messages.to_state_odometry_msg(
             step.stamp_ns, self.frame_id, self.child_frame_id, step.x, step.P))
         self.prediction_pub.publish(messages.to_state_odometry_msg(
             step.prediction_stamp_ns, self.frame_id, self.child_frame_id,
             step.predicted_x, step.predicted_P))
+        if step.update is not None:
+            self._publish_innovation(step.measurement_stamp_ns, step.update)
+            self._nis.append(step.update.nis)
+
+    def _publish_innovation(self, stamp_ns: int, update) -> None:
+        """Publish one innovation record (first measurement component)."""
+        self.innovations += 1
+        self.innovation_pub.publish(messages.to_innovation_msg(
+            stamp_ns, self.frame_id, update.innovation[0],
+            update.innovation_covariance[0, 0], update.nis))
+
+    def _warn_rejection(self, reason: str, text: str) -> None:
+        """Log a rejection, at most once per WARN_THROTTLE_S for each reason."""
+        now = time.monotonic()
+        last, suppressed = self._warned.get(reason, (-math.inf, 0))
+        if now - last < WARN_THROTTLE_S:
+            self._warned[reason] = (last, suppressed + 1)
+            return
+        more = f' ({suppressed} more since the last such warning)' if suppressed else ''
+        self.get_logger().warning(f'measurement rejected ({reason}): {text}{more}')
+        self._warned[reason] = (now, 0)
+
+    def _after_reset(self, reason: str, detail: str) -> None:
+        """Log a reset the estimator went through and restart the NIS window."""
+        self._nis.clear()
+        text = f'filter reset ({reason}): {detail}'
+        if reason in ('manual', 'set_state'):
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
+
+    def _check_clock(self) -> int:
+        """Return the node clock in ns (0 if unset); reset on a backwards jump."""
+        now_ns = self.get_clock().now().nanoseconds
+        if now_ns == 0:
+            return 0  # a simulated clock that has not started yet
+        last, self._last_clock_ns = self._last_clock_ns, now_ns
+        if now_ns < last:
+            jump = f'node clock jumped back {(last - now_ns) / NS_PER_S:.3f} s'
+            if not self.reset_on_clock_jump:
+                self.get_logger().warning(f'{jump}; not resetting (reset_on_clock_jump false)')
+            elif self.estimator.initialized:
+                self.estimator.reset('clock_jump')
+                self._after_reset('clock_jump', jump)
+            else:
+                self.get_logger().info(jump)
+        return now_ns
+
+    # -- services and state -------------------------------------------------------------
+
+    def _on_reset_request(self, request, response):
+        """Handle ~/reset: forget the state."""
+        self.estimator.reset('manual')
+        self._after_reset('manual', 'requested through ~/reset')
+        response.success = True
+        response.message = 'filter reset; the next measurement initialises it'
+        return response
+
+    def _on_set_state(self, msg: Odometry) -> None:
+        """Handle ~/set_state: replace the state with the one the message carries."""
+        state = messages.from_state_odometry_msg(msg)
+        try:
+            if state.frame_id and state.frame_id != self.frame_id:
+                raise ValueError(f'frame_id {state.frame_id!r} is not {self.frame_id!r}')
+            stamp_ns = (state.stamp_ns or self.estimator.last_stamp_ns
+                        or self.get_clock().now().nanoseconds)
+            self.estimator.set_state(stamp_ns, state.x, state.P)
+        except ValueError as error:
+            self.set_state_refused += 1
+            self.get_logger().warning(f'~/set_state refused: {error}')
+            return
+        self._after_reset('set_state', f'x = {state.x} at {stamp_ns} ns')
+
+    # -- diagnostics --------------------------------------------------------------------
+
+    def _nis_bounds(self, count: int):
+        """Return (cached) 99% bounds of the mean of count NIS values."""
+        key = (count, self.estimator.model.dim_z)
+        if key not in self._bounds_cache:
+            if len(self._bounds_cache) > 1000:
+                self._bounds_cache.clear()
+            self._bounds_cache[key] = chi2_mean_bounds(count, key[1], CONSISTENCY_CONFIDENCE)
+        return self._bounds_cache[key]
+
+    def _on_diagnostics_timer(self) -> None:
+        """Publish /diagnostics and say once when measurements stop."""
+        self._check_clock()
+        now = time.monotonic()
+        elapsed = max(now - self._tick_mono, 1e-9)
+        input_rate = (self.received - self._received_at_tick) / elapsed
+        fused_rate = (self.fused - self._fused_at_tick) / elapsed
+        self._tick_mono, self._received_at_tick, self._fused_at_tick = (
+            now, self.received, self.fused)
+        warnings = []
+        since = self._last_fused_mono if self._last_fused_mono is not None else self._start_mono
+        age = now - since
+        if age > self.timeout_s:
+            what = ('no measurement fused yet' if self._last_fused_mono is None
+                    else 'no measurement fused')
+            warnings.append(f'{what} for {age:.1f} s (timeout_s {self.timeout_s:g})')
+            if not self._timed_out:
+                self.get_logger().warning(warnings[-1])
+                self._timed_out = True
+        elif self._timed_out:
+            self.get_logger().info('measurements are being fused again')
+            self._timed_out = False
+        values = [
+            ('initialized', str(self.estimator.initialized).lower()),
+            ('input_rate_hz', f'{input_rate:.3f}'),
+            ('fused_rate_hz', f'{fused_rate:.3f}'),
+            ('last_measurement_age_s',
+             'never' if self._last_fused_mono is None else f'{age:.3f}'),
+            ('received', str(self.received)),
+            ('fused', str(self.fused)),
+            ('fused_out_of_sequence', str(self.estimator.out_of_sequence_count)),
+            ('rejected', str(self.rejected)),
+        ]
+        values += [(f'rejected.{reason}', str(count))
+                   for reason, count in self.estimator.rejection_counts.items()]
+        resets = self.estimator.reset_counts
+        values.append(('resets', str(sum(resets.values()))))
+        values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
+        values.append(('set_state_refused', str(self.set_state_refused)))
+        values += [('gate_probability', f'{self.estimator.settings.gate_probability:g}'),
+                   ('gate_threshold', f'{self.estimator.gate_threshold:.6g}')]
+        count = len(self._nis)
+        values.append(('nis_window_count', str(count)))
+        if count:
+            mean = math.fsum(self._nis) / count
+            lower, upper = self._nis_bounds(count)
+            values += [('nis_window_mean', f'{mean:.6g}'),
+                       ('nis_lower_99', f'{lower:.6g}'), ('nis_upper_99', f'{upper:.6g}')]
+            if mean > upper:
+                warnings.append(f'inconsistent: noise parameters too small (mean NIS '
+                                f'{mean:.3g} > {upper:.3g} over {count} updates)')
+            elif mean < lower:
+                warnings.append(f'inconsistent: noise parameters too large (mean NIS '
+                                f'{mean:.3g} < {lower:.3g} over {count} updates)')
+        state = self.estimator.state
+        if state is not None:
+            condition = float(np.linalg.cond(state[1]))
+            values.append(('covariance_condition', f'{condition:.6g}'))
+            if not condition <= MAX_CONDITION:
+                warnings.append(f'ill-conditioned covariance (condition {condition:.3g})')
+        if warnings:
+            level, message = 'WARN', '; '.join(warnings)
+        else:
+            level = 'OK'
+            message = 'ok' if self.estimator.initialized else 'waiting for measurements'
+        now_ns = self.get_clock().now().nanoseconds
+        msg = messages.to_diagnostics_msg(now_ns, f'{self.get_name()}: filter', 'kf_train',
+                                          level, message, values)
+        self._last_diagnostics = msg
+        self.diagnostics_pub.publish(msg)
 
 
 def _setting_value(name: str, value):
@@ -148,8 +467,9 @@ def _setting_value(name: str, value):
 
 
 def main(args=None) -> int:
-    """Run the estimator until Ctrl-C or SIGTERM."""
-    return run(EstimatorNode, args)
+    """Run the estimator until Ctrl-C or SIGTERM (``--executor events``: see runner.py)."""
+    args, executor = executor_option(args)
+    return run(EstimatorNode, args, executor=executor)
 
 
 if __name__ == '__main__':

@@ -11,14 +11,20 @@ The only module that knows message layouts. Conventions (REP 103/105):
   :data:`UNESTIMATED_VARIANCE` (this 1-D model does not estimate them) and the
   off-diagonal entries 0. Odometry cannot carry the position-velocity covariance;
   it is not published there.
+* Innovation (geometry_msgs/Vector3Stamped, one per gated update): ``vector.x`` the
+  innovation y = z - H x⁻ [m], ``vector.y`` its variance S = H P⁻ Hᵀ + R [m²],
+  ``vector.z`` the NIS y² / S [-]; stamped with the measurement's stamp.
+* Diagnostics (diagnostic_msgs/DiagnosticArray): one status, values as key/value text.
 """
 
-from typing import NamedTuple, Sequence
+from typing import List, NamedTuple, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.core.estimator import NS_PER_S
 from nav_msgs.msg import Odometry
+from rosgraph_msgs.msg import Clock
 
 UNESTIMATED_VARIANCE = 1e9
 """Variance [m² or rad²] given to dimensions the 1-D model does not estimate."""
@@ -93,3 +99,79 @@ def to_state_odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str,
     """Return an Odometry from a [position, velocity] mean and its 2x2 covariance."""
     return to_odometry_msg(stamp_ns, frame_id, child_frame_id, x[0], x[1],
                            P[0][0], P[1][1])
+
+
+class OdometryState(NamedTuple):
+    """What :func:`to_odometry_msg` put into an Odometry, read back."""
+
+    stamp_ns: int
+    frame_id: str
+    child_frame_id: str
+    position_m: float
+    velocity_mps: float
+    position_variance_m2: float
+    velocity_variance_m2s2: float
+
+
+def from_odometry_msg(msg: Odometry) -> OdometryState:
+    """Return the stamp, frames, position, velocity and their variances of an Odometry."""
+    return OdometryState(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                         msg.child_frame_id, float(msg.pose.pose.position.x),
+                         float(msg.twist.twist.linear.x), float(msg.pose.covariance[0]),
+                         float(msg.twist.covariance[0]))
+
+
+class StateMessage(NamedTuple):
+    """A [position, velocity] state and its covariance, as read from an Odometry."""
+
+    stamp_ns: int
+    frame_id: str
+    x: List[float]
+    P: List[List[float]]
+
+
+def from_state_odometry_msg(msg: Odometry) -> StateMessage:
+    """
+    Return the state an Odometry carries: position x, velocity twist.linear.x.
+
+    The covariance is diag(pose.covariance[0], twist.covariance[0]): Odometry has no
+    place for the position-velocity covariance, which is taken as 0.
+    """
+    return StateMessage(
+        stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+        [float(msg.pose.pose.position.x), float(msg.twist.twist.linear.x)],
+        [[float(msg.pose.covariance[0]), 0.0], [0.0, float(msg.twist.covariance[0])]])
+
+
+def to_innovation_msg(stamp_ns: int, frame_id: str, innovation: float,
+                      innovation_variance: float, nis: float) -> Vector3Stamped:
+    """Return an innovation record: x = innovation, y = its variance S, z = NIS."""
+    msg = Vector3Stamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.vector.x = float(innovation)
+    msg.vector.y = float(innovation_variance)
+    msg.vector.z = float(nis)
+    return msg
+
+
+DIAGNOSTIC_LEVELS = {'OK': DiagnosticStatus.OK, 'WARN': DiagnosticStatus.WARN,
+                     'ERROR': DiagnosticStatus.ERROR, 'STALE': DiagnosticStatus.STALE}
+"""Level names used by the nodes, and their DiagnosticStatus byte values."""
+
+
+def to_diagnostics_msg(stamp_ns: int, name: str, hardware_id: str, level: str,
+                       message: str, values: Sequence[Tuple[str, str]]) -> DiagnosticArray:
+    """Return a DiagnosticArray with one status; ``level`` is a DIAGNOSTIC_LEVELS key."""
+    status = DiagnosticStatus(level=DIAGNOSTIC_LEVELS[level], name=name, message=message,
+                              hardware_id=hardware_id,
+                              values=[KeyValue(key=k, value=v) for k, v in values])
+    msg = DiagnosticArray()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.status = [status]
+    return msg
+
+
+def to_clock_msg(stamp_ns: int) -> Clock:
+    """Return a /clock message (rosgraph_msgs/Clock) for simulated time."""
+    return Clock(clock=ns_to_stamp(stamp_ns))
