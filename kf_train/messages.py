@@ -15,13 +15,27 @@ The only module that knows message layouts. Conventions (REP 103/105):
   innovation y = z - H x⁻ [m], ``vector.y`` its variance S = H P⁻ Hᵀ + R [m²],
   ``vector.z`` the NIS y² / S [-]; stamped with the measurement's stamp.
 * Diagnostics (diagnostic_msgs/DiagnosticArray): one status, values as key/value text.
+* Controls (topic ``control``): the car's commanded acceleration as
+  geometry_msgs/AccelStamped ``accel.linear.x`` [m/s²], the robot's measured speed as
+  geometry_msgs/TwistStamped ``twist.linear.x`` [m/s]; every other field 0, frame the
+  body frame (``child_frame_id``, x along the track). Stamped t_k, a control is the
+  input applied over the interval (t_{k-1}, t_k] that ends at its stamp.
+* A state of one component (the robot's position) goes out as an Odometry whose
+  twist is not estimated: ``twist.twist.linear.x`` 0 with variance
+  :data:`UNESTIMATED_VARIANCE`.
+* A position-and-velocity measurement (preset ``cv-position-velocity``) is a
+  nav_msgs/Odometry laid out as the estimate: position ``pose.pose.position.x`` with
+  variance ``pose.covariance[0]``, velocity ``twist.twist.linear.x`` with variance
+  ``twist.covariance[0]`` (:func:`to_odometry_msg`, :func:`from_odometry_msg`).
 """
 
+import struct
 from typing import List, NamedTuple, Sequence, Tuple
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
+from geometry_msgs.msg import (
+    AccelStamped, PoseWithCovarianceStamped, TwistStamped, Vector3Stamped)
 from kf_train.core.estimator import NS_PER_S
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock
@@ -48,6 +62,14 @@ def ns_to_stamp(stamp_ns: int) -> Time:
     """Return integer nanoseconds as a ROS stamp."""
     sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     return Time(sec=sec, nanosec=nanosec)
+
+
+def stamp_ns_from_serialized(data: bytes) -> int:
+    """Return header.stamp [ns] of a serialized (CDR) message that starts with a Header."""
+    # A 4-byte encapsulation header (its byte 1 is 1 for little endian), then
+    # stamp.sec (int32) and stamp.nanosec (uint32): no need to deserialize the rest.
+    sec, nanosec = struct.unpack_from('<iI' if data[1] & 1 else '>iI', data, 4)
+    return sec * NS_PER_S + nanosec
 
 
 def covariance_6x6(first_variance: float) -> Sequence[float]:
@@ -141,6 +163,63 @@ def from_state_odometry_msg(msg: Odometry) -> StateMessage:
         stamp_to_ns(msg.header.stamp), msg.header.frame_id,
         [float(msg.pose.pose.position.x), float(msg.twist.twist.linear.x)],
         [[float(msg.pose.covariance[0]), 0.0], [0.0, float(msg.twist.covariance[0])]])
+
+
+def to_position_odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str,
+                             position_m: float, position_variance_m2: float) -> Odometry:
+    """Return an Odometry of a position-only estimate; the twist is marked unestimated."""
+    return to_odometry_msg(stamp_ns, frame_id, child_frame_id, position_m, 0.0,
+                           position_variance_m2, UNESTIMATED_VARIANCE)
+
+
+def to_estimate_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x, P) -> Odometry:
+    """Return an Odometry of a [position, velocity] or [position] mean and covariance."""
+    if len(x) == 1:
+        return to_position_odometry_msg(stamp_ns, frame_id, child_frame_id, x[0], P[0][0])
+    return to_state_odometry_msg(stamp_ns, frame_id, child_frame_id, x, P)
+
+
+class Control(NamedTuple):
+    """A control input as the estimator consumes it (one component, along x)."""
+
+    stamp_ns: int
+    frame_id: str
+    value: float
+
+
+def to_accel_msg(stamp_ns: int, frame_id: str, acceleration_mps2: float) -> AccelStamped:
+    """Return a commanded acceleration [m/s²] in accel.linear.x; the rest 0."""
+    msg = AccelStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.accel.linear.x = float(acceleration_mps2)
+    return msg
+
+
+def from_accel_msg(msg: AccelStamped) -> Control:
+    """Return the stamp, frame and accel.linear.x [m/s²] of an AccelStamped."""
+    return Control(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                   float(msg.accel.linear.x))
+
+
+def to_twist_msg(stamp_ns: int, frame_id: str, velocity_mps: float) -> TwistStamped:
+    """Return a measured speed [m/s] in twist.linear.x; the rest 0."""
+    msg = TwistStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.twist.linear.x = float(velocity_mps)
+    return msg
+
+
+def from_twist_msg(msg: TwistStamped) -> Control:
+    """Return the stamp, frame and twist.linear.x [m/s] of a TwistStamped."""
+    return Control(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                   float(msg.twist.linear.x))
+
+
+CONTROL_MESSAGES = {'acceleration': (AccelStamped, to_accel_msg, from_accel_msg),
+                    'velocity': (TwistStamped, to_twist_msg, from_twist_msg)}
+"""Control name -> (message type, builder, reader) for the ``control`` topic."""
 
 
 def to_innovation_msg(stamp_ns: int, frame_id: str, innovation: float,

@@ -180,7 +180,7 @@ def _run_other_executor(make_node: Callable[[], Node], args: Optional[List[str]]
         executor = EventsExecutor()
         executor.add_node(node)
         while not stop.done():
-            executor.spin()
+            executor.spin_until_future_complete(stop, timeout_sec=SPIN_SLICE_S)
         return EXIT_OK
     except (KeyboardInterrupt, ExternalShutdownException):
         return EXIT_OK
