@@ -17,6 +17,8 @@ COMMANDS = {
     'demo': ('kf_train.demo', 'run seed 000 over DDS with both nodes and print a report'),
     'replay': ('kf_train.replay', 'run a preset filter over a CSV of measurements, offline'),
     'plot': ('kf_train.plotting', "write PNG figures: the seeds' scenarios or a replay"),
+    'compare': ('kf_train.compare', 'compare KF/EKF, UKF and particle filter by Monte Carlo'),
+    'bench': ('kf_train.bench', 'measure performance side by side, print one table'),
 }
 
 

@@ -19,6 +19,12 @@ row's control held over the horizon), and with ``--smooth`` the RTS-smoothed
 ``smoothed_<state>`` and ``var_smoothed_<state>``. Numbers are written with Python's
 shortest round-trip repr: reading them back gives the computed doubles exactly.
 
+``--filter kf|ekf|ukf|pf`` runs that filter of the family
+(:mod:`kf_train.core.filters`) row by row instead, with the same columns (variances
+from the filter's covariance; for ``pf`` the particles'); ``--alpha``, ``--beta``,
+``--kappa`` tune the UKF, ``--particles``, ``--seed``, ``--resample-threshold``,
+``--roughening`` the particle filter.
+
 Bad input (a missing column, a non-numeric or non-finite cell, a row with the wrong
 number of fields, a non-increasing ``t``) is reported with the file, line and column,
 the exit code is 1, and no output file is written: output goes to a temporary file
@@ -35,10 +41,13 @@ import time
 from typing import Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 import warnings
 
+from kf_train.core.filters import (
+    add_filter_options, Filter, FILTER_KINDS, filter_options, make_filter)
 from kf_train.core.presets import (
     available_presets, load_preset, load_preset_file, Preset)
 from kf_train.core.series import (
-    MAX_ABS_TIME_S, NS_PER_S, run_linear_series, run_series, SeriesError, SeriesResult)
+    MAX_ABS_TIME_S, NS_PER_S, run_filter_series, run_linear_series, run_series, SeriesError,
+    SeriesResult)
 from kf_train.core.smoother import smooth_series, SmootherResult
 import numpy as np
 
@@ -227,8 +236,10 @@ def check_times(path: str, t: np.ndarray, lines: np.ndarray, t0_s: float) -> Non
 # ---------------------------------------------------------------------------
 
 def run_preset(preset: Preset, t, z, u=None, *, t0_s: float = 0.0, horizon_s=None,
-               fast: bool = True) -> SeriesResult:
+               fast: bool = True, filt: Optional[Filter] = None) -> SeriesResult:
     """Run a preset over arrays: the vectorised path for linear presets, else the loop."""
+    if filt is not None:  # --filter: any filter of the family, row by row
+        return run_filter_series(filt, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
     if fast and preset.linear:
         return run_linear_series(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
     return run_series(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
@@ -304,8 +315,12 @@ class ReplaySummary(NamedTuple):
 
 
 def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
-           smooth: bool = False, t0_s: float = 0.0, fast: bool = True) -> ReplaySummary:
+           smooth: bool = False, t0_s: float = 0.0, fast: bool = True,
+           filt: Optional[Filter] = None) -> ReplaySummary:
     """Replay ``input_path`` through ``preset`` into ``output_path``; raise InputError."""
+    if smooth and filt is not None and filt.kind == 'pf':
+        raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
+                         'smoother does not apply to particles')
     start = time.perf_counter()
     text = sys.stdin.read() if input_path == '-' else None
     table = read_table(input_path, required_columns(preset), text)
@@ -319,7 +334,8 @@ def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
         u = np.column_stack([table.columns[name] for name in preset.control_columns()]) \
             if table.rows else np.empty((0, preset.dim_u))
     try:
-        result = run_preset(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s, fast=fast)
+        result = run_preset(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s, fast=fast,
+                            filt=filt)
         smoothed = smooth_series(result) if smooth else None
     except SeriesError as error:
         raise InputError(f'{input_path} line {table.lines[error.row]}: {error.reason}') from None
@@ -365,6 +381,10 @@ def _parser() -> argparse.ArgumentParser:
                         help='time at which the initial estimate holds [s] (default 0)')
     parser.add_argument('--list', action='store_true',
                         help='list the shipped presets and exit')
+    parser.add_argument('--filter', choices=FILTER_KINDS, default=None,
+                        help='run this filter of the family row by row (default: the '
+                             "preset's exact filter, vectorised where linear): %(choices)s")
+    add_filter_options(parser)
     return parser
 
 
@@ -386,9 +406,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.horizon is not None and args.horizon < 0.0:
         parser.error(f'--horizon must be >= 0, got {args.horizon}')
     try:
+        options = filter_options(args)
+    except ValueError as error:
+        parser.error(str(error))
+    try:
         preset = load_preset(args.preset) if args.preset else load_preset_file(args.config)
+        filt = None if args.filter is None else make_filter(preset, args.filter, options)
         summary = replay(preset, args.input, args.output, horizon_s=args.horizon,
-                         smooth=args.smooth, t0_s=args.t0)
+                         smooth=args.smooth, t0_s=args.t0, filt=filt)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT

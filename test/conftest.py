@@ -20,7 +20,8 @@ def pytest_configure(config):
 
 
 def pytest_collection_modifyitems(config, items):
-    """Run the linters first.
+    """
+    Run the linters first.
 
     flake8 forks worker processes; forking a process that still holds DDS threads from
     earlier ROS tests can deadlock the child, so the linters go before any ROS test.

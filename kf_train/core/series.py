@@ -603,3 +603,39 @@ def _well_conditioned(P: np.ndarray) -> bool:
     """Return whether P is safely invertible (the information form needs P0⁻¹)."""
     w = np.linalg.eigvalsh(P)
     return bool(w[0] > 0.0 and w[-1] / w[0] < 1e12)
+
+
+# ---------------------------------------------------------------------------
+# Any filter of the family (kf_train.core.filters): the replay's --filter
+# ---------------------------------------------------------------------------
+
+def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=None,
+                      P0=None) -> SeriesResult:
+    """
+    Filter a series row by row with a filter from ``filters.make_filter``.
+
+    The filter is reset to (x0, P0), the preset's initial estimate by default, and
+    then predicts and updates every row, as :func:`run_series` does; x and P are
+    the filter's mean and covariance (for the particle filter, the particles').
+    """
+    preset = filt.preset
+    dt, z, u, horizon_s, x0, P0 = _series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
+    N, n = dt.shape[0], preset.dim_x
+    filt.reset(x0, P0)
+    out_x, out_P = np.empty((N, n)), np.empty((N, n, n))
+    prior_x, prior_P = np.empty((N, n)), np.empty((N, n, n))
+    pred_x = np.empty((N, n)) if horizon_s else None
+    pred_P = np.empty((N, n, n)) if horizon_s else None
+    for k in range(N):
+        u_k = None if u is None else u[k]
+        try:
+            filt.predict(dt[k], u_k)
+            prior_x[k], prior_P[k] = filt.mean, filt.covariance
+            filt.update(z[k])
+            out_x[k], out_P[k] = filt.mean, filt.covariance
+            if horizon_s:
+                pred_x[k], pred_P[k] = filt.predict_ahead(horizon_s, u_k)
+        except ValueError as error:
+            raise SeriesError(k, str(error)) from None
+    return SeriesResult(np.asarray(t_s, dtype=float), out_x, out_P, prior_x, prior_P,
+                        preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P)
