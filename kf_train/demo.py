@@ -470,6 +470,7 @@ def _raise_on_sigterm():
 
 def build_series(probe: Probe, seed: int, settings: EstimatorSettings) -> DemoSeries:
     """Join the recorded messages by stamp and recompute everything offline."""
+    settings = settings.resolved()  # the preset's values where the settings leave None
     measurements = sorted((messages.from_measurement_msg(m)
                            for m in probe.received['measurement']), key=lambda m: m.stamp_ns)
     truth = {s.stamp_ns: s for s in map(messages.from_odometry_msg,
@@ -533,6 +534,7 @@ def build_series(probe: Probe, seed: int, settings: EstimatorSettings) -> DemoSe
 def format_report(series: DemoSeries, domain_id: int, seed: int,
                   settings: EstimatorSettings) -> str:
     """Return the demo's report: estimates, predictions and baselines against the truth."""
+    settings = settings.resolved()  # the preset's values where the settings leave None
     x, var = series.x_hist[-1], series.var_hist[-1]
     t_end = series.t_s[-1]
     horizon_s = (int(series.prediction_stamp_ns[-1]) - int(series.stamp_ns[-1])) / NS_PER_S

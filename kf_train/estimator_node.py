@@ -9,6 +9,36 @@ message stamps, never from arrival times. After each fused measurement it publis
 All the mathematics, and every check of the input contract, is in
 :mod:`kf_train.core.estimator`; this node counts, logs and publishes.
 
+Presets (parameter ``preset``, fixed at start-up): the filter of a seed, ``train``
+by default (seed 000). The preset brings the model, ``initial_state``,
+``initial_covariance``, ``nominal_period_s`` and ``horizon_s``: those parameters
+default to the preset's values (``ros2 param get`` shows the values in use), and a
+value given explicitly (``-p``, a params file) overrides them. So a params file that
+lists them (as config/kf_train.yaml does, with the train's values) overrides them:
+leave them out for another preset. ``process_noise_density`` adds white-noise
+acceleration to the preset's own process noise (constant-velocity presets only).
+
+* ``car``, ``car-exact`` (seed 001): subscribes ``control``
+  (geometry_msgs/AccelStamped, ``accel.linear.x`` = commanded acceleration [m/s²]).
+* ``robot``, ``robot-exact`` (seed 002): subscribes ``control``
+  (geometry_msgs/TwistStamped, ``twist.linear.x`` = measured speed [m/s]); the state
+  is the position alone, so ``estimate`` carries no velocity (``twist.linear.x`` 0,
+  variance 1e9, as for every unestimated dimension).
+* ``cv-position`` (seed 003, dt = 1 s): as the train.
+* ``cv-position-velocity`` (seed 003 variant): ``measurement`` is a nav_msgs/Odometry
+  (position ``pose.pose.position.x``, variance ``pose.covariance[0]``; velocity
+  ``twist.twist.linear.x``, variance ``twist.covariance[0]``), fused as one
+  2-D measurement.
+* ``range-bearing`` is 2-D: offline only (``kf-train replay``).
+
+A control stamped t_k is the input over (t_{k-1}, t_k]: the prediction to a
+measurement stamped t_k uses it. Its header.frame_id is not checked (the 1-D model
+takes linear.x as along the track; the simulator stamps it with its child frame).
+The node never waits for a control: a measurement whose control has not arrived yet
+is fused with the best one known, and when the control comes (within ``history_s``)
+the filter rewinds and replays, and publishes the corrected ``estimate`` and
+``prediction`` again (see :mod:`kf_train.core.estimator`).
+
 Robustness (see the core module for the exact rules):
 
 * Rejected measurements (bad numbers, zero/duplicate/stale/future stamps, wrong
@@ -31,24 +61,30 @@ Other interfaces:
   ``vector.x`` = innovation y = z - H x⁻ [m], ``vector.y`` = its variance
   S = H P⁻ Hᵀ + R [m²], ``vector.z`` = NIS y²/S [-]; rejected ones have
   NIS > ``gate_threshold`` (in the diagnostics). For live tuning:
-  ``ros2 topic echo /innovation``.
+  ``ros2 topic echo /innovation``. With a position-and-velocity measurement, x and y
+  are the position's, z the NIS of the whole measurement (χ² with 2 degrees of
+  freedom).
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``
   on the steady clock): one status ``<node name>: filter``, level OK or WARN, with the
-  input rate, last measurement age, counts (received, fused, rejected.<reason>,
-  resets.<reason>), the mean NIS over the last ``nis_window`` updates against its
-  χ² 99% bounds (WARN "inconsistent: noise parameters too small/large"), the gate
-  threshold and the covariance condition number.
+  preset, input rate, last measurement age, counts (received, fused,
+  rejected.<reason>, resets.<reason>; with a control input controls_received,
+  controls.accepted / late / provisional, controls_rejected.<reason>), the mean NIS
+  over the last ``nis_window`` updates against its χ² 99% bounds (WARN
+  "inconsistent: noise parameters too small/large"), the gate threshold and the
+  covariance condition number.
 * ``~/reset`` (std_srvs/srv/Trigger): forget the state; the next measurement
   initialises the filter.
 * ``~/set_state`` (nav_msgs/Odometry, reliable): set the state to position
   ``pose.pose.position.x`` [m] and velocity ``twist.twist.linear.x`` [m/s] with
-  covariance diag(``pose.covariance[0]``, ``twist.covariance[0]``), valid at
-  ``header.stamp`` (0: the newest fused stamp, or now before any); ``header.frame_id``
-  must be empty or ``frame_id``. Refusals are logged and counted.
+  covariance diag(``pose.covariance[0]``, ``twist.covariance[0]``) (the position
+  alone for the robot), valid at ``header.stamp`` (0: the newest fused stamp, or now
+  before any); ``header.frame_id`` must be empty or ``frame_id``. Refusals are logged
+  and counted.
 
 Every parameter can be changed at runtime; a change is validated as a whole and
-refused with a reason (the old values stay). Noise and gate changes apply from the
-next measurement and restart the NIS window.
+refused with a reason (the old values stay), except ``preset``, which is read-only
+(it fixes the state, the topics' types and the model: restart to change it). Noise and
+gate changes apply from the next measurement and restart the NIS window.
 """
 
 import collections
@@ -62,8 +98,8 @@ from kf_train import messages
 from kf_train.core.chi2 import chi2_mean_bounds
 from kf_train.core.estimator import (
     EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
-    MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S, Rejected,
-    RESTART_AFTER_STALE_RANGE, TrainEstimator)
+    LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S,
+    preset_defaults, Rejected, RESTART_AFTER_STALE_RANGE, TrainEstimator)
 from kf_train.parameters import BIG, declare
 from kf_train.runner import executor_option, run, StartupError
 from nav_msgs.msg import Odometry
@@ -77,12 +113,16 @@ from std_srvs.srv import Trigger
 QOS_DEPTH = 10
 WARN_THROTTLE_S = 5.0
 # The node turns on what the seed-faithful core defaults leave off: out-of-sequence
-# fusion and a χ² gate that rejects a valid measurement once in 10⁴.
-DEFAULTS = dataclasses.replace(EstimatorSettings(), history_s=1.0, gate_probability=0.9999)
+# fusion. The χ² gate stays off (1.0): with Q = 0 and the seed's wrong prior, valid
+# innovations reach a NIS of 25 on some seeds (seed 3), which a 0.9999 gate would
+# reject, and prior mode must reproduce the seed on any measurements. Real sensors:
+# set e.g. 0.999.
+DEFAULTS = dataclasses.replace(EstimatorSettings(), history_s=1.0, gate_probability=1.0)
+DEFAULT_PRESET = 'train'
 SETTING_NAMES = frozenset(field.name for field in dataclasses.fields(EstimatorSettings))
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
-                            'gate_probability'))
+                            'measurement_velocity_variance', 'gate_probability'))
 CONSISTENCY_CONFIDENCE = 0.99
 # Condition number of P above which the diagnostics warn: beyond ~1e12 a double
 # keeps only a few significant digits of the smaller eigen-direction.
@@ -93,12 +133,25 @@ NIS_WINDOW_RANGE = (1, 1_000_000)
 
 
 class EstimatorNode(Node):
-    """Estimates the train's position and velocity and predicts them horizon_s ahead."""
+    """Estimates the train's (or a preset's) position and velocity, predicts them ahead."""
 
     def __init__(self, **kwargs):
         """Declare parameters, build the filter and wire the topics."""
         super().__init__('estimator', **kwargs)
-        values = self._declare_settings()
+        preset = declare(
+            self, 'preset', DEFAULT_PRESET,
+            'The filter: a seed preset (' + ', '.join(LIVE_PRESETS) + ') or the path of '
+            'a preset YAML file. It sets the model, the control topic and the defaults of '
+            'initial_state, initial_covariance, nominal_period_s and horizon_s. Fixed at '
+            'start-up (restart to change).',
+            constraints='one of: ' + ', '.join(LIVE_PRESETS) + ', or a .yaml path',
+            read_only=True)
+        try:
+            preset_values = preset_defaults(preset)
+        except ValueError as error:
+            raise StartupError(f'invalid parameter: {error}') from None
+        values = self._declare_settings(preset_values)
+        values['preset'] = preset
         self.frame_id = declare(self, 'frame_id', 'odom',
                                 'header.frame_id of estimate, prediction and innovation '
                                 '(REP 105).', constraints='a non-empty frame name')
@@ -127,12 +180,17 @@ class EstimatorNode(Node):
             self.estimator = TrainEstimator(settings)
         except ValueError as error:
             raise StartupError(f'invalid parameter: {error}') from None
+        self.preset = self.estimator.preset
         if not self.frame_id or not self.child_frame_id:
             raise StartupError('invalid parameter: frame_id and child_frame_id must not '
                                'be empty')
 
         self.received = 0
         self.fused = 0
+        self.corrections = 0
+        """Estimates republished because a late control changed them."""
+        self.controls_received = 0
+        self.controls_rejected = 0
         self.rejected = 0
         self.set_state_refused = 0
         self.innovations = 0
@@ -147,8 +205,18 @@ class EstimatorNode(Node):
         self._last_diagnostics = None
 
         qos = QoSProfile(depth=QOS_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.control_subscription = None
+        if self.preset.control_names:
+            # Created before the measurement subscription: when a control and its
+            # measurement are both waiting, the executor takes the control first.
+            control = self.preset.control_names[0]
+            kind, _, self._read_control = messages.CONTROL_MESSAGES[control]
+            self.control_subscription = self.create_subscription(
+                kind, 'control', self._on_control, qos)
+        self.measures_velocity = self.preset.measurement_names == ('position', 'velocity')
         self.subscription = self.create_subscription(
-            PoseWithCovarianceStamped, 'measurement', self._on_measurement, qos)
+            Odometry if self.measures_velocity else PoseWithCovarianceStamped,
+            'measurement', self._on_measurement, qos)
         self.estimate_pub = self.create_publisher(Odometry, 'estimate', QOS_DEPTH)
         self.prediction_pub = self.create_publisher(Odometry, 'prediction', QOS_DEPTH)
         self.innovation_pub = self.create_publisher(Vector3Stamped, 'innovation', QOS_DEPTH)
@@ -162,33 +230,42 @@ class EstimatorNode(Node):
             clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
-    def _declare_settings(self) -> dict:
+    def _declare_settings(self, preset: dict) -> dict:
         """Declare the parameters that configure the core estimator; return their values."""
         live = 'Takes effect from the next measurement.'
         at_init = 'Used when the filter (re)initialises.'
+        default = "Default: the preset's. "
         return {
             'initial_state': declare(
-                self, 'initial_state', list(DEFAULTS.initial_state),
-                'Initial [position m, velocity m/s]; in first_measurement mode only the '
-                'velocity is used. ' + at_init, constraints='2 finite doubles'),
+                self, 'initial_state', list(preset['initial_state']),
+                'Initial [position m, velocity m/s] ([position m] for the robot); in '
+                'first_measurement mode only the unmeasured velocity is used. ' + default
+                + at_init, constraints='one finite double per state'),
             'initial_covariance': declare(
-                self, 'initial_covariance', list(DEFAULTS.initial_covariance),
-                'Initial covariance [m², m²/s²]: the diagonal (2 values) or the full '
-                'row-major matrix (4 values), symmetric positive semi-definite. ' + at_init,
-                constraints='2 or 4 finite doubles, symmetric PSD'),
+                self, 'initial_covariance', list(preset['initial_covariance']),
+                'Initial covariance [m², m²/s²]: the diagonal (one value per state) or the '
+                'full row-major matrix, symmetric positive semi-definite. ' + default
+                + at_init, constraints='n or n² finite doubles, symmetric PSD'),
             'process_noise_density': declare(
                 self, 'process_noise_density', DEFAULTS.process_noise_density,
                 'White-noise acceleration density q [m²/s³]: Q(dt) = q [[dt³/3, dt²/2], '
-                '[dt²/2, dt]]. 0 (seed 000) trusts the constant-velocity model fully. '
+                "[dt²/2, dt]], added to the preset's process noise (train: 0, as seed 000, "
+                'which trusts the constant-velocity model fully). Must be 0 for the robot. '
                 + live, float_range=(0.0, BIG)),
             'measurement_variance': declare(
                 self, 'measurement_variance', DEFAULTS.measurement_variance,
-                'Measurement variance R [m²] overriding the message covariance[0]; '
-                '0 uses the message. ' + live, float_range=(0.0, BIG)),
+                'Position measurement variance R [m²] overriding the message '
+                'pose.covariance[0]; 0 uses the message. ' + live, float_range=(0.0, BIG)),
+            'measurement_velocity_variance': declare(
+                self, 'measurement_velocity_variance',
+                DEFAULTS.measurement_velocity_variance,
+                'Velocity measurement variance [m²/s²] overriding the message '
+                'twist.covariance[0] (presets measuring the velocity); 0 uses the '
+                'message. ' + live, float_range=(0.0, BIG)),
             'horizon_s': declare(
-                self, 'horizon_s', DEFAULTS.horizon_s,
-                'How far ahead the prediction is [s]. ' + live,
-                float_range=(0.0, 86400.0)),
+                self, 'horizon_s', preset['horizon_s'],
+                'How far ahead the prediction is [s] (0: the prediction is the estimate). '
+                + default + live, float_range=(0.0, 86400.0)),
             'initialization': declare(
                 self, 'initialization', DEFAULTS.initialization,
                 'first_measurement: the first measurement sets the position, the velocity '
@@ -196,9 +273,9 @@ class EstimatorNode(Node):
                 'nominal_period_s before the first stamp (seed 000). ' + at_init,
                 constraints='one of: ' + ', '.join(INITIALIZATIONS)),
             'nominal_period_s': declare(
-                self, 'nominal_period_s', DEFAULTS.nominal_period_s,
+                self, 'nominal_period_s', preset['nominal_period_s'],
                 'Prior mode: how long before the first stamp the prior holds [s]. '
-                + at_init, float_range=(1e-6, 3600.0)),
+                + default + at_init, float_range=(1e-6, 3600.0)),
             'first_velocity_std_mps': declare(
                 self, 'first_velocity_std_mps', DEFAULTS.first_velocity_std_mps,
                 'first_measurement mode: standard deviation of the initial velocity '
@@ -211,8 +288,10 @@ class EstimatorNode(Node):
                 float_range=HISTORY_S_RANGE),
             'gate_probability': declare(
                 self, 'gate_probability', DEFAULTS.gate_probability,
-                'χ² gate: a measurement whose NIS exceeds the χ²(1) quantile of this '
-                'probability is rejected as an outlier; 1 disables the gate. ' + live,
+                'χ² gate: a measurement whose NIS exceeds the χ²(m) quantile of this '
+                'probability is rejected as an outlier; 1 (default) disables the gate, so '
+                'that prior mode reproduces the seeds on any data. For real sensors use '
+                'e.g. 0.999. ' + live,
                 float_range=GATE_PROBABILITY_RANGE),
             'max_consecutive_outliers': declare(
                 self, 'max_consecutive_outliers', DEFAULTS.max_consecutive_outliers,
@@ -269,43 +348,72 @@ class EstimatorNode(Node):
 
     # -- measurements -----------------------------------------------------------------
 
-    def _on_measurement(self, msg: PoseWithCovarianceStamped) -> None:
+    def _on_measurement(self, msg) -> None:
         """Fuse one measurement and publish the estimate, the prediction, the innovation."""
         self.received += 1
-        measurement = messages.from_measurement_msg(msg)
+        if self.measures_velocity:
+            read = messages.from_odometry_msg(msg)
+            stamp_ns = read.stamp_ns
+            velocity = {'velocity_mps': read.velocity_mps,
+                        'velocity_variance_m2s2': read.velocity_variance_m2s2}
+            position, variance, frame_id = (read.position_m, read.position_variance_m2,
+                                            read.frame_id)
+        else:
+            read = messages.from_measurement_msg(msg)
+            stamp_ns, position, variance, frame_id = (read.stamp_ns, read.position_m,
+                                                      read.variance_m2, read.frame_id)
+            velocity = {}
         now_ns = self._check_clock()
         try:
-            step = self.estimator.process(
-                measurement.stamp_ns, measurement.position_m, measurement.variance_m2,
-                frame_id=measurement.frame_id, now_ns=now_ns)
+            step = self.estimator.process(stamp_ns, position, variance, frame_id=frame_id,
+                                          now_ns=now_ns, **velocity)
         except Rejected as rejection:
             self.rejected += 1
             self._warn_rejection(rejection.reason, str(rejection))
             if rejection.update is not None:
-                self._publish_innovation(measurement.stamp_ns, rejection.update)
+                self._publish_innovation(stamp_ns, rejection.update)
             if rejection.reset is not None:
                 self._after_reset(rejection.reset, str(rejection))
             return
         if step.reset is not None:
-            self._after_reset(step.reset, f'measurement at {measurement.stamp_ns} ns '
-                              'initialises it')
+            self._after_reset(step.reset, f'measurement at {stamp_ns} ns initialises it')
+        if not self._publish_step(step):
+            return
+        self.fused += 1
+        self._last_fused_mono = time.monotonic()
+        if step.update is not None:
+            self._publish_innovation(step.measurement_stamp_ns, step.update)
+            self._nis.append(step.update.nis)
+
+    def _on_control(self, msg) -> None:
+        """Take one control; publish the estimate again if it corrected it."""
+        self.controls_received += 1
+        control = self._read_control(msg)
+        now_ns = self._check_clock()
+        try:
+            step = self.estimator.add_control(control.stamp_ns, [control.value], now_ns=now_ns)
+        except Rejected as rejection:
+            self.controls_rejected += 1
+            self._warn_rejection('control.' + rejection.reason, str(rejection), 'control')
+            return
+        if step is not None and self._publish_step(step):
+            self.corrections += 1
+
+    def _publish_step(self, step) -> bool:
+        """Publish estimate and prediction; on a non-finite number reset instead, False."""
         if not (np.isfinite(step.x).all() and np.isfinite(step.P).all()
                 and np.isfinite(step.predicted_x).all()
                 and np.isfinite(step.predicted_P).all()):
             # The core never produces this; if it ever did, nothing non-finite leaves.
             self.estimator.reset('non_finite')
             self._after_reset('non_finite', 'a non-finite state was not published')
-            return
-        self.fused += 1
-        self._last_fused_mono = time.monotonic()
-        self.estimate_pub.publish(messages.to_state_odometry_msg(
+            return False
+        self.estimate_pub.publish(messages.to_estimate_msg(
             step.stamp_ns, self.frame_id, self.child_frame_id, step.x, step.P))
-        self.prediction_pub.publish(messages.to_state_odometry_msg(
+        self.prediction_pub.publish(messages.to_estimate_msg(
             step.prediction_stamp_ns, self.frame_id, self.child_frame_id,
             step.predicted_x, step.predicted_P))
-        if step.update is not None:
-            self._publish_innovation(step.measurement_stamp_ns, step.update)
-            self._nis.append(step.update.nis)
+        return True
 
     def _publish_innovation(self, stamp_ns: int, update) -> None:
         """Publish one innovation record (first measurement component)."""
@@ -314,7 +422,7 @@ class EstimatorNode(Node):
             stamp_ns, self.frame_id, update.innovation[0],
             update.innovation_covariance[0, 0], update.nis))
 
-    def _warn_rejection(self, reason: str, text: str) -> None:
+    def _warn_rejection(self, reason: str, text: str, what: str = 'measurement') -> None:
         """Log a rejection, at most once per WARN_THROTTLE_S for each reason."""
         now = time.monotonic()
         last, suppressed = self._warned.get(reason, (-math.inf, 0))
@@ -322,7 +430,7 @@ class EstimatorNode(Node):
             self._warned[reason] = (last, suppressed + 1)
             return
         more = f' ({suppressed} more since the last such warning)' if suppressed else ''
-        self.get_logger().warning(f'measurement rejected ({reason}): {text}{more}')
+        self.get_logger().warning(f'{what} rejected ({reason}): {text}{more}')
         self._warned[reason] = (now, 0)
 
     def _after_reset(self, reason: str, detail: str) -> None:
@@ -369,7 +477,8 @@ class EstimatorNode(Node):
                 raise ValueError(f'frame_id {state.frame_id!r} is not {self.frame_id!r}')
             stamp_ns = (state.stamp_ns or self.estimator.last_stamp_ns
                         or self.get_clock().now().nanoseconds)
-            self.estimator.set_state(stamp_ns, state.x, state.P)
+            n = self.preset.dim_x  # the robot's state is the position alone
+            self.estimator.set_state(stamp_ns, state.x[:n], [row[:n] for row in state.P[:n]])
         except ValueError as error:
             self.set_state_refused += 1
             self.get_logger().warning(f'~/set_state refused: {error}')
@@ -410,6 +519,7 @@ class EstimatorNode(Node):
             self.get_logger().info('measurements are being fused again')
             self._timed_out = False
         values = [
+            ('preset', self.preset.name),
             ('initialized', str(self.estimator.initialized).lower()),
             ('input_rate_hz', f'{input_rate:.3f}'),
             ('fused_rate_hz', f'{fused_rate:.3f}'),
@@ -426,6 +536,13 @@ class EstimatorNode(Node):
         values.append(('resets', str(sum(resets.values()))))
         values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
         values.append(('set_state_refused', str(self.set_state_refused)))
+        if self.estimator.has_control:
+            values.append(('controls_received', str(self.controls_received)))
+            values += [(f'controls.{key}', str(count))
+                       for key, count in self.estimator.control_counts.items()]
+            values.append(('controls_rejected', str(self.controls_rejected)))
+            values += [(f'controls_rejected.{reason}', str(count)) for reason, count
+                       in self.estimator.control_rejection_counts.items()]
         values += [('gate_probability', f'{self.estimator.settings.gate_probability:g}'),
                    ('gate_threshold', f'{self.estimator.gate_threshold:.6g}')]
         count = len(self._nis)

@@ -1,11 +1,36 @@
 """
-The ``simulator`` node: a train at constant velocity, measured with noise at rate_hz.
+The ``simulator`` node: a seed's scenario (the train by default), measured at rate_hz.
 
-Publishes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped) and
-``ground_truth`` (nav_msgs/Odometry) with identical stamps. Sample k is stamped
-``start + k / rate_hz`` on the node clock (so ``use_sim_time`` works), where
-``start`` is one period before the first sample is published; stamps are thus exactly
-periodic, and the truth ``x0 + v·t`` is evaluated at the stamp.
+Publishes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped, variance
+``noise_std``² in ``pose.covariance[0]``) and ``ground_truth`` (nav_msgs/Odometry)
+with identical stamps. Sample k is stamped ``start + k / rate_hz`` on the node clock
+(so ``use_sim_time`` works), where ``start`` is one period before the first sample is
+published; stamps are thus exactly periodic, and the truth is evaluated at t_k = k /
+rate_hz.
+
+``scenario`` (fixed at start-up; see :mod:`kf_train.core.scenario_streams`):
+
+* ``train`` (seed 000): x = ``initial_position`` + ``true_velocity``·t.
+* ``car`` / ``car-exact`` (seed 001): from [``initial_position``, ``true_velocity``]
+  (default [0.2, 0]) a random walk driven by the commanded acceleration
+  ``acceleration_mps2`` (1 m/s²), with the seed's process noise diag(0, 0.05) per
+  0.1 s and its B = [0, dt] (``car-exact``: [dt²/2, dt]). Also publishes ``control``
+  (geometry_msgs/AccelStamped, ``accel.linear.x`` [m/s²]).
+* ``robot`` / ``robot-exact`` (seed 002): x = ``initial_position`` + 0.05·t·cos(2t),
+  a range finder with σ = ``noise_std`` (default 0.03 m, R = 0.0009) and a speed
+  sensor with σ = ``speed_noise_std`` (0.2 m/s). Also publishes ``control``
+  (geometry_msgs/TwistStamped, ``twist.linear.x`` [m/s]): for ``robot`` the speed read
+  at the previous sample, as the seed applies it; for ``robot-exact`` the reading of
+  the interval itself. ``true_velocity`` is not used.
+* ``noise_std``, ``initial_position`` and ``true_velocity`` default to the scenario's
+  values (train: 1 m, 0 m, 10 m/s; car: 1 m, 0.2 m, 0 m/s; robot: 0.03 m, 0 m).
+
+Controls: sample k's control is the input applied over (t_{k-1}, t_k], the interval
+that ends at it (SEEDS.md); it is stamped t_k, in the body frame ``child_frame_id``,
+and published just *before* the measurement stamped t_k. It is never faulty, but
+carries the jumped stamp of a clock jump (it comes from the same clock). A seed's
+cv-position run is the ``train`` scenario with rate_hz 1, true_velocity 2 and
+initial_position -1 (x = 2t − 1).
 
 Fault injection (all off by default, seeded from ``seed`` through a generator of
 their own, so the measurement noise is the same with and without faults; see
@@ -13,8 +38,8 @@ their own, so the measurement noise is the same with and without faults; see
 ``outlier_probability`` / ``outlier_size_m``, ``delay_s`` (a fixed latency, timed on
 the steady clock), ``reorder_probability`` (a sample arrives after the next one),
 ``clock_jump_at_s`` / ``clock_jump_s`` (stamps jump from that sample time on) and
-``measurement_bias_m``. The ground truth is never faulty, but carries the jumped
-stamp, like the measurement of the same sample. ``publish_clock`` publishes each
+``measurement_bias_m``, for every scenario. The ground truth is never faulty, but
+carries the jumped stamp, like the measurement of the same sample. ``publish_clock`` publishes each
 sample's stamp on ``/clock`` (rosgraph_msgs/Clock), so that nodes with
 ``use_sim_time`` see the clock jump too.
 """
@@ -26,7 +51,9 @@ from geometry_msgs.msg import PoseWithCovarianceStamped
 from kf_train import messages
 from kf_train.core.estimator import NS_PER_S
 from kf_train.core.faults import FaultInjector, FaultSettings
-from kf_train.core.simulation import TrainSimulation
+from kf_train.core.scenario_streams import (
+    CAR_ACCELERATION_MPS2, CONTROL_NAMES, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
+    make_stream, ROBOT_SPEED_STD_MPS, SCENARIOS)
 from kf_train.parameters import BIG, declare
 from kf_train.runner import run, StartupError
 from nav_msgs.msg import Odometry
@@ -54,24 +81,45 @@ FAULT_PARAMETERS = {
 
 
 class SimulatorNode(Node):
-    """Publishes simulated train measurements and the ground truth."""
+    """Publishes simulated measurements (and controls) of a seed scenario and the truth."""
 
     def __init__(self, **kwargs):
         """Declare parameters, create publishers and start the sampling timer."""
         super().__init__('simulator', **kwargs)
         fixed = 'Fixed at start-up (restart to change).'
+        default = "Default: the scenario's. "
+        self.scenario = declare(
+            self, 'scenario', 'train',
+            'What is simulated: train (seed 000), car / car-exact (seed 001, publishes '
+            'control as AccelStamped), robot / robot-exact (seed 002, publishes control '
+            'as TwistStamped). ' + fixed, constraints='one of: ' + ', '.join(SCENARIOS),
+            read_only=True)
+        if self.scenario not in SCENARIOS:
+            raise StartupError('invalid parameter: scenario must be one of '
+                               f"{', '.join(SCENARIOS)}, got {self.scenario!r}")
+        scenario_position, scenario_velocity = DEFAULT_INITIAL_STATE[self.scenario]
         self.rate_hz = declare(self, 'rate_hz', 10.0, 'Sample rate [Hz]. ' + fixed,
                                float_range=(0.01, 10000.0), read_only=True)
-        velocity = declare(self, 'true_velocity', 10.0,
-                           'True constant velocity of the train [m/s]. ' + fixed,
+        velocity = declare(self, 'true_velocity', scenario_velocity,
+                           "True velocity [m/s]: the train's constant one, the car's "
+                           'initial one (robot: not used). ' + default + fixed,
                            float_range=(-1000.0, 1000.0), read_only=True)
-        position = declare(self, 'initial_position', 0.0,
-                           'True position at the start time [m]. ' + fixed,
+        position = declare(self, 'initial_position', scenario_position,
+                           'True position at the start time [m] (robot: added to the '
+                           "seed's trajectory). " + default + fixed,
                            float_range=(-BIG, BIG), read_only=True)
-        noise_std = declare(self, 'noise_std', 1.0,
+        noise_std = declare(self, 'noise_std', DEFAULT_NOISE_STD_M[self.scenario],
                             'Standard deviation of the position measurement noise [m]; '
-                            'its square is published as the measurement variance.',
-                            float_range=(0.0, 1000.0))
+                            'its square is published as the measurement variance. '
+                            + default, float_range=(0.0, 1000.0))
+        acceleration = declare(self, 'acceleration_mps2', CAR_ACCELERATION_MPS2,
+                               'car: the commanded acceleration [m/s²], published on '
+                               'control. ' + fixed, float_range=(-1000.0, 1000.0),
+                               read_only=True)
+        speed_noise_std = declare(self, 'speed_noise_std', ROBOT_SPEED_STD_MPS,
+                                  'robot: standard deviation of the speed sensor [m/s] '
+                                  'whose readings are published on control.',
+                                  float_range=(0.0, 1000.0))
         seed = declare(self, 'seed', 0,
                        'Seed of the measurement noise and of the faults; -1 draws fresh '
                        'entropy. ' + fixed, int_range=(-1, 2 ** 31 - 1), read_only=True)
@@ -85,16 +133,19 @@ class SimulatorNode(Node):
                                    'Samples to publish before finishing; 0 runs forever.',
                                    int_range=(0, 2 ** 31 - 1))
         self.min_subscribers = declare(self, 'min_subscribers', 0,
-                                       'Subscribers of measurement to wait for before '
-                                       'the first sample.', int_range=(0, 1000))
+                                       'Subscribers of measurement (and of control, '
+                                       'for car and robot) to wait for before the first '
+                                       'sample.', int_range=(0, 1000))
         self.publish_clock = declare(self, 'publish_clock', False,
                                      'Publish each sample stamp on /clock (for nodes '
                                      'with use_sim_time).', constraints='true or false')
         faults = self._declare_faults()
         if not self.frame_id or not self.child_frame_id:
             raise StartupError('frame_id and child_frame_id must not be empty')
-        self.simulation = TrainSimulation(position, velocity, noise_std, self.rate_hz,
-                                          None if seed < 0 else seed)
+        self.simulation = make_stream(
+            self.scenario, self.rate_hz, None if seed < 0 else seed, noise_std_m=noise_std,
+            initial_position_m=position, velocity_mps=velocity,
+            acceleration_mps2=acceleration, speed_noise_std_mps=speed_noise_std)
         try:
             self.faults = FaultInjector(faults, None if seed < 0 else seed)
         except ValueError as error:
@@ -104,6 +155,11 @@ class SimulatorNode(Node):
         self.measurement_pub = self.create_publisher(
             PoseWithCovarianceStamped, 'measurement', QOS_DEPTH)
         self.truth_pub = self.create_publisher(Odometry, 'ground_truth', QOS_DEPTH)
+        self.control_name = CONTROL_NAMES[self.scenario]
+        self.control_pub = None
+        if self.control_name is not None:
+            kind, self._control_msg, _ = messages.CONTROL_MESSAGES[self.control_name]
+            self.control_pub = self.create_publisher(kind, 'control', QOS_DEPTH)
         self.clock_pub = None  # created when publish_clock is first needed
         self.done = Future()
         self.published = 0
@@ -175,6 +231,9 @@ class SimulatorNode(Node):
         for parameter in parameters:
             if parameter.name == 'noise_std':
                 self.simulation.noise_std_m = float(parameter.value)
+            elif parameter.name == 'speed_noise_std' and hasattr(
+                    self.simulation, 'speed_noise_std_mps'):
+                self.simulation.speed_noise_std_mps = float(parameter.value)
             elif parameter.name in ('frame_id', 'child_frame_id', 'max_samples',
                                     'min_subscribers', 'publish_clock'):
                 setattr(self, parameter.name, parameter.value)
@@ -185,7 +244,9 @@ class SimulatorNode(Node):
         if self.done.done() or self._sampling_done:
             return
         if self._start_ns is None:
-            if self.measurement_pub.get_subscription_count() < self.min_subscribers:
+            if self.measurement_pub.get_subscription_count() < self.min_subscribers or (
+                    self.control_pub is not None
+                    and self.control_pub.get_subscription_count() < self.min_subscribers):
                 return
             self._start_ns = (self.get_clock().now().nanoseconds
                               - round(NS_PER_S / self.rate_hz))
@@ -197,6 +258,10 @@ class SimulatorNode(Node):
             if self.clock_pub is None:
                 self.clock_pub = self.create_publisher(ClockMsg, '/clock', QOS_DEPTH)
             self.clock_pub.publish(messages.to_clock_msg(truth_stamp_ns))
+        if self.control_pub is not None:
+            # The input over (t_{k-1}, t_k], stamped t_k, out before the measurement t_k.
+            self.control_pub.publish(self._control_msg(
+                truth_stamp_ns, self.child_frame_id, sample.control))
         deliveries = self.faults.apply(sample.index, sample.t_s, stamp_ns,
                                        sample.measured_position_m)
         self.published += 1
@@ -256,6 +321,8 @@ class SimulatorNode(Node):
         flush_timeout = Duration(nanoseconds=int(FLUSH_TIMEOUT_S * NS_PER_S))
         self.measurement_pub.wait_for_all_acked(timeout=flush_timeout)
         self.truth_pub.wait_for_all_acked(timeout=flush_timeout)
+        if self.control_pub is not None:
+            self.control_pub.wait_for_all_acked(timeout=flush_timeout)
         self.get_logger().info(f'published {self.published} samples; done')
         self.done.set_result(self.published)
 
