@@ -15,7 +15,9 @@ VENV ?= .venv
 PY = $(VENV)/bin/python
 PIP = $(PY) -m pip
 PYTHON3 ?= python3
-COLCON_WS ?= /tmp/kf_train_colcon_ws
+# Inside the clone (build/ is ignored by git and the linters), so parallel clones
+# never share a workspace.
+COLCON_WS ?= $(REPO_ROOT)/build/colcon_ws
 PYTEST_ARGS ?=
 
 REPO_ROOT := $(abspath $(dir $(lastword $(MAKEFILE_LIST))))
@@ -38,7 +40,8 @@ demo: setup
 
 # ROS_DOMAIN_ID must stay in 0..101 (Fast DDS port math); 1..100 here. Tests
 # may override it per test.
-test: setup
+test: colcon
+	export COLCON_WS=$(COLCON_WS); \
 	export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST; \
 	export ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-$$(( $$$$ % 100 + 1 ))}; \
 	echo "ROS_DOMAIN_ID=$$ROS_DOMAIN_ID"; \
