@@ -1,13 +1,15 @@
 """
 The ``estimator`` node: a Kalman filter on ``measurement``, estimates and predictions out.
 
-Subscribes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped, best-effort
-depth 10, so it matches reliable and best-effort publishers). dt comes from the
+Subscribes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped; QoS from
+``qos_reliability``, best-effort by default so that it matches reliable and
+best-effort publishers, and ``qos_depth``, 10 by default). dt comes from the
 message stamps, never from arrival times. After each fused measurement it publishes
 ``estimate`` (nav_msgs/Odometry, stamped with the newest fused stamp) and
 ``prediction`` (the state ``horizon_s`` ahead, stamped that stamp + horizon_s).
 All the mathematics, and every check of the input contract, is in
-:mod:`kf_train.core.estimator`; this node counts, logs and publishes.
+:mod:`kf_train.core.estimator`; this node counts, logs and publishes. (An output
+topic without subscribers is not published at all: cheaper, and the same to anyone.)
 
 Presets (parameter ``preset``, fixed at start-up): the filter of a seed, ``train``
 by default (seed 000). The preset brings the model, ``initial_state``,
@@ -66,9 +68,11 @@ Other interfaces:
   freedom).
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``
   on the steady clock): one status ``<node name>: filter``, level OK or WARN, with the
-  preset, input rate, last measurement age, counts (received, fused,
-  rejected.<reason>, resets.<reason>; with a control input controls_received,
-  controls.accepted / late / provisional, controls_rejected.<reason>), the mean NIS
+  preset, the filter (with ``ukf_regularisations``, or the particle filter's
+  ``pf_ess`` and ``pf_resample_count``), input rate, last measurement age, counts
+  (received, fused, rejected.<reason>, resets.<reason>; with a control input
+  controls_received, controls.accepted / late / provisional,
+  controls_rejected.<reason>), the mean NIS
   over the last ``nis_window`` updates against its χ² 99% bounds (WARN
   "inconsistent: noise parameters too small/large"), the gate threshold and the
   covariance condition number.
@@ -81,10 +85,20 @@ Other interfaces:
   before any); ``header.frame_id`` must be empty or ``frame_id``. Refusals are logged
   and counted.
 
+Filters (parameter ``filter``, fixed at start-up): ``kf`` (default, the exact linear
+filter), ``ekf`` (identical on these linear presets), ``ukf`` (Merwe sigma points,
+``ukf_alpha``/``ukf_beta``/``ukf_kappa``) or ``pf`` (bootstrap particle filter,
+``pf_particles``/``pf_seed``/``pf_resample_threshold``; reproducible bit for bit, an
+out-of-sequence replay included). Every one runs with the same input contract, gate
+(its own NIS), out-of-sequence replay, controls, resets and diagnostics. The particle
+filter needs ``process_noise_density`` > 0 on the train (Q = 0 otherwise: resampled
+particles never spread again).
+
 Every parameter can be changed at runtime; a change is validated as a whole and
-refused with a reason (the old values stay), except ``preset``, which is read-only
-(it fixes the state, the topics' types and the model: restart to change it). Noise and
-gate changes apply from the next measurement and restart the NIS window.
+refused with a reason (the old values stay), except ``preset``, ``filter`` and the
+filter's tuning, which are read-only (they fix the state, the topics' types and the
+model: restart to change them). Noise and gate changes apply from the next
+measurement and restart the NIS window.
 """
 
 import collections
@@ -99,7 +113,10 @@ from kf_train.core.chi2 import chi2_mean_bounds
 from kf_train.core.estimator import (
     EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
     LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S,
-    preset_defaults, Rejected, RESTART_AFTER_STALE_RANGE, TrainEstimator)
+    PF_PARTICLES_RANGE, PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, Rejected,
+    RESTART_AFTER_STALE_RANGE, TrainEstimator, UKF_ALPHA_RANGE, UKF_BETA_RANGE,
+    UKF_KAPPA_RANGE)
+from kf_train.core.filters import FILTER_KINDS
 from kf_train.parameters import BIG, declare
 from kf_train.runner import executor_option, run, StartupError
 from nav_msgs.msg import Odometry
@@ -107,10 +124,13 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
 QOS_DEPTH = 10
+QOS_DEPTH_RANGE = (1, 100_000)
+QOS_RELIABILITIES = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
+                     'reliable': ReliabilityPolicy.RELIABLE}
 WARN_THROTTLE_S = 5.0
 # The node turns on what the seed-faithful core defaults leave off: out-of-sequence
 # fusion. The χ² gate stays off (1.0): with Q = 0 and the seed's wrong prior, valid
@@ -174,6 +194,21 @@ class EstimatorNode(Node):
             self, 'reset_on_clock_jump', True,
             'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
             'loop, a simulation reset).', constraints='true or false')
+        qos_reliability = declare(
+            self, 'qos_reliability', 'best_effort',
+            'Reliability of the measurement and control subscriptions: best_effort '
+            '(default; matches any publisher, drops rather than stalls) or reliable '
+            '(lossless with reliable publishers while the node keeps up). Fixed at '
+            'start-up.', constraints='one of: ' + ', '.join(QOS_RELIABILITIES),
+            read_only=True)
+        qos_depth = declare(
+            self, 'qos_depth', QOS_DEPTH,
+            'History depth of the measurement and control subscriptions (messages queued '
+            'while the node is busy). Fixed at start-up.', int_range=QOS_DEPTH_RANGE,
+            read_only=True)
+        if qos_reliability not in QOS_RELIABILITIES:
+            raise StartupError(f'invalid parameter: qos_reliability must be one of '
+                               f"{', '.join(QOS_RELIABILITIES)}, got {qos_reliability!r}")
         try:
             settings = EstimatorSettings(
                 **{name: _setting_value(name, value) for name, value in values.items()})
@@ -204,7 +239,15 @@ class EstimatorNode(Node):
         self._last_clock_ns = 0
         self._last_diagnostics = None
 
-        qos = QoSProfile(depth=QOS_DEPTH, reliability=ReliabilityPolicy.BEST_EFFORT)
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
+                         reliability=QOS_RELIABILITIES[qos_reliability])
+        # Outgoing messages are filled in place (messages.EstimateWriter): per message
+        # only the changed fields are written, nothing is allocated.
+        self._estimate_writer = messages.EstimateWriter(
+            self.frame_id, self.child_frame_id, self.preset.dim_x)
+        self._prediction_writer = messages.EstimateWriter(
+            self.frame_id, self.child_frame_id, self.preset.dim_x)
+        self._innovation_writer = messages.InnovationWriter(self.frame_id)
         self.control_subscription = None
         if self.preset.control_names:
             # Created before the measurement subscription: when a control and its
@@ -214,9 +257,12 @@ class EstimatorNode(Node):
             self.control_subscription = self.create_subscription(
                 kind, 'control', self._on_control, qos)
         self.measures_velocity = self.preset.measurement_names == ('position', 'velocity')
+        # A position measurement arrives serialised and only its four fields are read
+        # (messages.measurement_from_serialized): rclpy's deserialisation would cost
+        # more than the whole filter step.
         self.subscription = self.create_subscription(
             Odometry if self.measures_velocity else PoseWithCovarianceStamped,
-            'measurement', self._on_measurement, qos)
+            'measurement', self._on_measurement, qos, raw=not self.measures_velocity)
         self.estimate_pub = self.create_publisher(Odometry, 'estimate', QOS_DEPTH)
         self.prediction_pub = self.create_publisher(Odometry, 'prediction', QOS_DEPTH)
         self.innovation_pub = self.create_publisher(Vector3Stamped, 'innovation', QOS_DEPTH)
@@ -235,7 +281,41 @@ class EstimatorNode(Node):
         live = 'Takes effect from the next measurement.'
         at_init = 'Used when the filter (re)initialises.'
         default = "Default: the preset's. "
+        fixed = ' Fixed at start-up (restart to change).'
         return {
+            'filter': declare(
+                self, 'filter', DEFAULTS.filter,
+                'The filter: kf (exact linear Kalman filter, default), ekf (the same on '
+                'these linear presets), ukf (unscented, ukf_alpha/beta/kappa) or pf '
+                '(bootstrap particle filter, pf_particles/pf_seed/pf_resample_threshold; '
+                'give it process_noise_density > 0, or its particles collapse).' + fixed,
+                constraints='one of: ' + ', '.join(FILTER_KINDS), read_only=True),
+            'ukf_alpha': declare(
+                self, 'ukf_alpha', DEFAULTS.ukf_alpha,
+                'UKF sigma-point spread alpha > 0.' + fixed, float_range=UKF_ALPHA_RANGE,
+                read_only=True),
+            'ukf_beta': declare(
+                self, 'ukf_beta', DEFAULTS.ukf_beta,
+                'UKF beta (2 is optimal for Gaussians).' + fixed, float_range=UKF_BETA_RANGE,
+                read_only=True),
+            'ukf_kappa': declare(
+                self, 'ukf_kappa', DEFAULTS.ukf_kappa,
+                'UKF kappa (n + kappa > 0).' + fixed, float_range=UKF_KAPPA_RANGE,
+                read_only=True),
+            'pf_particles': declare(
+                self, 'pf_particles', DEFAULTS.pf_particles,
+                'Particle filter: number of particles.' + fixed, int_range=PF_PARTICLES_RANGE,
+                read_only=True),
+            'pf_seed': declare(
+                self, 'pf_seed', DEFAULTS.pf_seed,
+                'Particle filter: seed; its generator restarts from it at every '
+                '(re)initialisation, so a run is reproducible bit for bit.' + fixed,
+                int_range=PF_SEED_RANGE, read_only=True),
+            'pf_resample_threshold': declare(
+                self, 'pf_resample_threshold', DEFAULTS.pf_resample_threshold,
+                'Particle filter: resample (systematic) when the effective sample size '
+                'falls below this fraction of pf_particles.' + fixed,
+                float_range=PF_RESAMPLE_THRESHOLD_RANGE, read_only=True),
             'initial_state': declare(
                 self, 'initial_state', list(preset['initial_state']),
                 'Initial [position m, velocity m/s] ([position m] for the robot); in '
@@ -342,6 +422,10 @@ class EstimatorNode(Node):
                 self._diagnostics_timer.timer_period_ns = int(value * NS_PER_S)
                 self._diagnostics_timer.reset()
             setattr(self, name, value)
+        if FRAME_PARAMETERS[0] in node_values or FRAME_PARAMETERS[1] in node_values:
+            for writer in (self._estimate_writer, self._prediction_writer):
+                writer.set_frames(self.frame_id, self.child_frame_id)
+            self._innovation_writer.set_frame(self.frame_id)
         if NOISE_AND_GATE & changes.keys():
             self._nis.clear()  # the old NIS values judged the old tuning
         return SetParametersResult(successful=True)
@@ -359,7 +443,8 @@ class EstimatorNode(Node):
             position, variance, frame_id = (read.position_m, read.position_variance_m2,
                                             read.frame_id)
         else:
-            read = messages.from_measurement_msg(msg)
+            read = (messages.measurement_from_serialized(msg) if type(msg) is bytes
+                    else messages.from_measurement_msg(msg))
             stamp_ns, position, variance, frame_id = (read.stamp_ns, read.position_m,
                                                       read.variance_m2, read.frame_id)
             velocity = {}
@@ -401,26 +486,33 @@ class EstimatorNode(Node):
 
     def _publish_step(self, step) -> bool:
         """Publish estimate and prediction; on a non-finite number reset instead, False."""
-        if not (np.isfinite(step.x).all() and np.isfinite(step.P).all()
+        # One test for all four: 0·v is 0 for every finite v, NaN for NaN and ±inf.
+        if not 0.0 * (sum(step.x.tolist()) + sum(step.P.ravel().tolist())
+                      + sum(step.predicted_x.tolist())
+                      + sum(step.predicted_P.ravel().tolist())) == 0.0 and not (
+                np.isfinite(step.x).all() and np.isfinite(step.P).all()
                 and np.isfinite(step.predicted_x).all()
                 and np.isfinite(step.predicted_P).all()):
             # The core never produces this; if it ever did, nothing non-finite leaves.
             self.estimator.reset('non_finite')
             self._after_reset('non_finite', 'a non-finite state was not published')
             return False
-        self.estimate_pub.publish(messages.to_estimate_msg(
-            step.stamp_ns, self.frame_id, self.child_frame_id, step.x, step.P))
-        self.prediction_pub.publish(messages.to_estimate_msg(
-            step.prediction_stamp_ns, self.frame_id, self.child_frame_id,
-            step.predicted_x, step.predicted_P))
+        # A topic nobody subscribes to is not published: a publish costs ~20 µs, the
+        # count ~1 µs, and a message without a matched reader would go nowhere anyway.
+        if self.estimate_pub.get_subscription_count():
+            self.estimate_pub.publish(self._estimate_writer.fill(step.stamp_ns, step.x, step.P))
+        if self.prediction_pub.get_subscription_count():
+            self.prediction_pub.publish(self._prediction_writer.fill(
+                step.prediction_stamp_ns, step.predicted_x, step.predicted_P))
         return True
 
     def _publish_innovation(self, stamp_ns: int, update) -> None:
         """Publish one innovation record (first measurement component)."""
         self.innovations += 1
-        self.innovation_pub.publish(messages.to_innovation_msg(
-            stamp_ns, self.frame_id, update.innovation[0],
-            update.innovation_covariance[0, 0], update.nis))
+        if not self.innovation_pub.get_subscription_count():
+            return  # (see _publish_step)
+        self.innovation_pub.publish(self._innovation_writer.fill(
+            stamp_ns, update.innovation[0], update.innovation_covariance[0, 0], update.nis))
 
     def _warn_rejection(self, reason: str, text: str, what: str = 'measurement') -> None:
         """Log a rejection, at most once per WARN_THROTTLE_S for each reason."""
@@ -518,8 +610,10 @@ class EstimatorNode(Node):
         elif self._timed_out:
             self.get_logger().info('measurements are being fused again')
             self._timed_out = False
+        settings = self.estimator.settings
         values = [
             ('preset', self.preset.name),
+            ('filter', settings.filter),
             ('initialized', str(self.estimator.initialized).lower()),
             ('input_rate_hz', f'{input_rate:.3f}'),
             ('fused_rate_hz', f'{fused_rate:.3f}'),
@@ -543,7 +637,15 @@ class EstimatorNode(Node):
             values.append(('controls_rejected', str(self.controls_rejected)))
             values += [(f'controls_rejected.{reason}', str(count)) for reason, count
                        in self.estimator.control_rejection_counts.items()]
-        values += [('gate_probability', f'{self.estimator.settings.gate_probability:g}'),
+        model = self.estimator.model
+        regularisations = getattr(model, 'regularisations', None)
+        if regularisations is not None:
+            values.append(('ukf_regularisations', str(regularisations)))
+        if settings.filter == 'pf' and self.estimator.initialized:
+            # The particles last stepped: those of the newest estimate.
+            values += [('pf_ess', f'{model.filter.ess:.1f}'),
+                       ('pf_resample_count', str(model.filter.resample_count))]
+        values += [('gate_probability', f'{settings.gate_probability:g}'),
                    ('gate_threshold', f'{self.estimator.gate_threshold:.6g}')]
         count = len(self._nis)
         values.append(('nis_window_count', str(count)))

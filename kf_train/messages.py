@@ -38,6 +38,7 @@ from geometry_msgs.msg import (
     AccelStamped, PoseWithCovarianceStamped, TwistStamped, Vector3Stamped)
 from kf_train.core.estimator import NS_PER_S
 from nav_msgs.msg import Odometry
+from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
 
 UNESTIMATED_VARIANCE = 1e9
@@ -97,6 +98,35 @@ def from_measurement_msg(msg: PoseWithCovarianceStamped) -> Measurement:
     """Return the stamp, frame, position and variance of a measurement message."""
     return Measurement(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
                        float(msg.pose.pose.position.x), float(msg.pose.covariance[0]))
+
+
+_CDR_LE = b'\x00\x01'  # encapsulation id of plain little-endian CDR (XCDR1)
+_HEADER_LE = struct.Struct('<iII')  # stamp.sec, stamp.nanosec, frame_id length
+_DOUBLE_LE = struct.Struct('<d')
+
+
+def measurement_from_serialized(data: bytes) -> Measurement:
+    """
+    Return what :func:`from_measurement_msg` returns, read straight from the CDR bytes.
+
+    Deserialising a PoseWithCovarianceStamped in rclpy costs ~50 µs (it builds the
+    whole message and a numpy covariance); the four fields the estimator needs are
+    read here in ~2 µs. Layout of plain CDR after the 4-byte encapsulation header,
+    offsets from its end: stamp.sec int32 @0, stamp.nanosec uint32 @4, frame_id as
+    uint32 length n (with its NUL) @8 and n bytes @12, then the doubles aligned to 8:
+    pose.position.x, .y, .z, orientation x, y, z, w, covariance[36]. Anything but
+    little-endian plain CDR is deserialised the ordinary way.
+    """
+    if data[:2] != _CDR_LE or len(data) < 16:
+        return from_measurement_msg(deserialize_message(data, PoseWithCovarianceStamped))
+    sec, nanosec, n = _HEADER_LE.unpack_from(data, 4)
+    position_at = 4 + ((12 + n + 7) & ~7)
+    if n < 1 or position_at + 64 > len(data):
+        return from_measurement_msg(deserialize_message(data, PoseWithCovarianceStamped))
+    frame_id = data[16:15 + n].decode('utf-8')
+    return Measurement(sec * NS_PER_S + nanosec, frame_id,
+                       _DOUBLE_LE.unpack_from(data, position_at)[0],
+                       _DOUBLE_LE.unpack_from(data, position_at + 56)[0])
 
 
 def to_odometry_msg(stamp_ns: int, frame_id: str, child_frame_id: str,
@@ -177,6 +207,78 @@ def to_estimate_msg(stamp_ns: int, frame_id: str, child_frame_id: str, x, P) -> 
     if len(x) == 1:
         return to_position_odometry_msg(stamp_ns, frame_id, child_frame_id, x[0], P[0][0])
     return to_state_odometry_msg(stamp_ns, frame_id, child_frame_id, x, P)
+
+
+class EstimateWriter:
+    """
+    One reused Odometry for a stream of estimates: fills only what changes.
+
+    :meth:`fill` writes the stamp, position, velocity and their variances into the
+    same message every time, which is as :func:`to_estimate_msg` would build it (the
+    frames, orientation.w = 1 and the unestimated variances are set once). The
+    message may be published and filled again at once: rclpy serialises it during
+    ``publish``. Not for a message kept after the next fill.
+    """
+
+    def __init__(self, frame_id: str, child_frame_id: str, dim_x: int):
+        """Prefill a message for a [position, velocity] (dim_x 2) or [position] state."""
+        self.dim_x = dim_x
+        self.msg = to_odometry_msg(0, frame_id, child_frame_id, 0.0, 0.0, 0.0,
+                                   UNESTIMATED_VARIANCE)
+        msg = self.msg
+        self._stamp = msg.header.stamp
+        self._position = msg.pose.pose.position
+        self._velocity = msg.twist.twist.linear
+        self._pose_covariance = msg.pose.covariance
+        self._twist_covariance = msg.twist.covariance
+
+    def set_frames(self, frame_id: str, child_frame_id: str) -> None:
+        """Change header.frame_id and child_frame_id."""
+        self.msg.header.frame_id = frame_id
+        self.msg.child_frame_id = child_frame_id
+
+    def fill(self, stamp_ns: int, x, P) -> Odometry:
+        """Return the message holding state x, covariance P at stamp_ns."""
+        sec, nanosec = divmod(stamp_ns, NS_PER_S)
+        stamp = self._stamp
+        stamp.sec = sec
+        stamp.nanosec = nanosec
+        if self.dim_x == 1:
+            self._position.x = float(x[0])
+            self._pose_covariance[0] = float(P[0][0])
+            return self.msg
+        position, velocity = x.tolist()
+        self._position.x = position
+        self._velocity.x = velocity
+        self._pose_covariance[0] = P[0][0]
+        self._twist_covariance[0] = P[1][1]
+        return self.msg
+
+
+class InnovationWriter:
+    """One reused Vector3Stamped for the innovation records (see :class:`EstimateWriter`)."""
+
+    def __init__(self, frame_id: str):
+        """Prefill the frame."""
+        self.msg = to_innovation_msg(0, frame_id, 0.0, 0.0, 0.0)
+        self._stamp = self.msg.header.stamp
+        self._vector = self.msg.vector
+
+    def set_frame(self, frame_id: str) -> None:
+        """Change header.frame_id."""
+        self.msg.header.frame_id = frame_id
+
+    def fill(self, stamp_ns: int, innovation: float, innovation_variance: float,
+             nis: float) -> Vector3Stamped:
+        """Return the message: x = innovation, y = its variance S, z = NIS."""
+        sec, nanosec = divmod(stamp_ns, NS_PER_S)
+        self._stamp.sec = sec
+        self._stamp.nanosec = nanosec
+        vector = self._vector
+        vector.x = float(innovation)
+        vector.y = float(innovation_variance)
+        vector.z = float(nis)
+        return self.msg
 
 
 class Control(NamedTuple):

@@ -8,6 +8,15 @@ same shape; see :func:`check_live_preset`). The preset brings the model, the ini
 state and covariance, the nominal period and the horizon; a setting that is not None
 overrides the preset's value.
 
+The filter (``filter``, fixed for the estimator's life like the preset) is ``kf``
+(default), ``ekf`` (the KF on these linear presets), ``ukf`` or ``pf``: each is a pure
+``predict(x, P, dt, u)``/``update(x, P, z, R)`` model, so the input contract, the χ²
+gate (on the filter's own NIS), the out-of-sequence replay, controls and resets work
+alike for all. The particle filter keeps the particles behind every kept mean, so a
+rewind restores them and the generator, and a replay repeats its draws bit for bit.
+The train's KF runs in closed form (:class:`_FastTrainModel`; equal to the generic
+path to rounding, ~4x cheaper).
+
 Time is kept in integer nanoseconds (as ROS stamps are), so that dt between two
 stamps is exact: a float of epoch seconds has only ~0.2 µs resolution, which alone
 would move the estimate by more than 1e-9.
@@ -95,11 +104,16 @@ from dataclasses import dataclass, replace
 import math
 import os
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence, Tuple
+import weakref
 
 from kf_train.core.chi2 import chi2_quantile
+from kf_train.core.fast import correct, white_noise_terms
+from kf_train.core.filters import DEFAULT_PARTICLES, FILTER_KINDS
 from kf_train.core.kalman import UpdateResult
 from kf_train.core.models import constant_velocity_model, LinearModel, WhiteNoiseAcceleration
+from kf_train.core.particle import DEFAULT_RESAMPLE_THRESHOLD, ParticleFilter
 from kf_train.core.presets import load_preset, load_preset_file, Preset, PRESET_NAMES
+from kf_train.core.ukf import DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA, UnscentedModel
 from kf_train.core.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
 
@@ -138,6 +152,15 @@ HISTORY_S_RANGE = (0.0, 60.0)
 MAX_CONSECUTIVE_OUTLIERS_RANGE = (1, 1_000_000)
 RESTART_AFTER_STALE_RANGE = (2, 1_000_000)
 MAX_FUTURE_S_RANGE = (0.0, 1e9)
+UKF_ALPHA_RANGE = (1e-4, 10.0)
+UKF_BETA_RANGE = (0.0, 100.0)
+UKF_KAPPA_RANGE = (-0.999, 100.0)  # n + kappa > 0 for every live preset (n >= 1)
+PF_PARTICLES_RANGE = (1, 1_000_000)
+PF_SEED_RANGE = (0, 2 ** 31 - 1)
+PF_RESAMPLE_THRESHOLD_RANGE = (0.0, 1.0)
+FILTER_SETTINGS = ('filter', 'ukf_alpha', 'ukf_beta', 'ukf_kappa', 'pf_particles', 'pf_seed',
+                   'pf_resample_threshold')
+"""Settings fixed for an estimator's life (like the preset): they choose the filter."""
 # Controls kept at most (a control stream running while no measurement comes).
 MAX_CONTROLS = 100_000
 # Distinct dt values whose F, Q and B a preset model keeps computed.
@@ -351,6 +374,21 @@ class EstimatorSettings:
     """The filter: a name from LIVE_PRESETS or the path of a preset YAML file."""
     measurement_velocity_variance: float = 0.0
     """R of a measured velocity [m²/s²] overriding the message's; 0 uses the message's."""
+    filter: str = 'kf'  # noqa: A003 (the node parameter's name)
+    """The filter kind (:data:`kf_train.core.filters.FILTER_KINDS`): ``kf`` (exact, the
+    default), ``ekf`` (the same on these linear presets), ``ukf`` or ``pf``."""
+    ukf_alpha: float = DEFAULT_ALPHA
+    """UKF sigma-point spread α > 0."""
+    ukf_beta: float = DEFAULT_BETA
+    """UKF prior-knowledge weight β (2 is optimal for a Gaussian)."""
+    ukf_kappa: float = DEFAULT_KAPPA
+    """UKF secondary scaling κ (n + κ > 0)."""
+    pf_particles: int = DEFAULT_PARTICLES
+    """Particle filter: number of particles."""
+    pf_seed: int = 0
+    """Particle filter: seed of its generator (restarted from it at every initialisation)."""
+    pf_resample_threshold: float = DEFAULT_RESAMPLE_THRESHOLD
+    """Particle filter: resample when the effective sample size < this · pf_particles."""
 
     def resolved(self) -> 'EstimatorSettings':
         """Return a copy with the preset's values where a field is None (see preset_defaults)."""
@@ -403,6 +441,16 @@ class EstimatorSettings:
         if not isinstance(self.expected_frame_id, str):
             raise ValueError(
                 f'expected_frame_id must be a string, got {self.expected_frame_id!r}')
+        if self.filter not in FILTER_KINDS:
+            raise ValueError(f"filter must be one of {', '.join(FILTER_KINDS)}, "
+                             f'got {self.filter!r}')
+        _check_float_range('ukf_alpha', self.ukf_alpha, *UKF_ALPHA_RANGE)
+        _check_float_range('ukf_beta', self.ukf_beta, *UKF_BETA_RANGE)
+        _check_float_range('ukf_kappa', self.ukf_kappa, *UKF_KAPPA_RANGE)
+        _check_int_range('pf_particles', self.pf_particles, *PF_PARTICLES_RANGE)
+        _check_int_range('pf_seed', self.pf_seed, *PF_SEED_RANGE)
+        _check_float_range('pf_resample_threshold', self.pf_resample_threshold,
+                           *PF_RESAMPLE_THRESHOLD_RANGE)
         return self
 
 
@@ -454,6 +502,150 @@ class _Entry(NamedTuple):
     kind: str
     """'init' (initialised the filter), 'update', or 'set' / 'reinit' (set_state, the
     re-initialisation after a lock-out: no rewinding past them)."""
+
+
+class _FastTrainModel:
+    """
+    Seed 000's train model with ``predict``/``update`` in closed form on plain floats.
+
+    The same interface and results (to rounding) as the generic LinearModel with
+    F(dt) = [[1, dt], [0, 1]], Q(dt) = q·[[dt³/3, dt²/2], [dt²/2, dt]], H = [1, 0],
+    at a fraction of the cost: no numpy call but the arrays it returns, and no
+    re-validation of the estimator's own, already checked, arrays. The update is
+    :func:`kf_train.core.fast.correct` (the Joseph form reduced for the optimal gain).
+    Non-finite results and a zero S raise ValueError as the generic path does.
+    """
+
+    def __init__(self, model: LinearModel, q: float):
+        """Mirror ``model`` (the generic train model with density q)."""
+        self.base = model
+        self.state_names = model.state_names
+        self.measurement_names = model.measurement_names
+        self.control_names = model.control_names
+        self.dim_x, self.dim_z = 2, 1
+        self.F, self.Q, self.B, self.H, self.R = model.F, model.Q, None, model.H, model.R
+        self._q = float(q)
+        self._noise = (None, 0.0, 0.0, 0.0)  # (dt, Q00, Q01, Q11) of the latest dt
+
+    def _terms(self, dt_s) -> Tuple[float, float, float, float]:
+        """Return (dt, Q00, Q01, Q11) for dt_s, checked and cached for a steady rate."""
+        noise = self._noise
+        if dt_s == noise[0]:
+            return noise
+        dt = float(dt_s)
+        if not 0.0 <= dt < math.inf:
+            raise ValueError(f'dt must be a finite number >= 0, got {dt_s!r}')
+        try:
+            noise = (dt,) + white_noise_terms(self._q, dt)
+        except OverflowError:
+            raise ValueError('prediction produced a non-finite state; inputs are too '
+                             'large') from None
+        self._noise = noise
+        return noise
+
+    def predict(self, x, P, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Return (x⁻, P⁻) over dt_s: x⁻ = F x, P⁻ = F P Fᵀ + Q."""
+        if u is not None:
+            raise ValueError('u given to a model without control input')
+        dt, q00, q01, q11 = self._terms(dt_s)
+        x0, x1 = x.tolist()
+        (p00, p01), (p10, p11) = P.tolist()
+        p01 = 0.5 * (p01 + p10)  # the generic path symmetrises too
+        p01_dt = p01 + dt * p11
+        x0 = x0 + dt * x1                       # x⁻ = F x
+        p00 = p00 + dt * (p01 + p01_dt) + q00   # P⁻00 = P00 + dt (P01 + P01 + dt P11) + Q00
+        p01 = p01_dt + q01                      # P⁻01 = P01 + dt P11 + Q01
+        p11 = p11 + q11                         # P⁻11 = P11 + Q11
+        if not 0.0 * (x0 + x1 + p00 + p01 + p11) == 0.0:
+            raise ValueError('prediction produced a non-finite state; inputs are too large')
+        return np.array((x0, x1)), np.array(((p00, p01), (p01, p11)))
+
+    def update(self, x, P, z, R=None) -> Tuple[np.ndarray, np.ndarray, UpdateResult]:
+        """Return (x, P, UpdateResult) after position measurement z of variance R."""
+        x0, x1 = x.tolist()
+        (p00, p01), (p10, p11) = P.tolist()
+        p01 = 0.5 * (p01 + p10)
+        r = float((self.R if R is None else R)[0][0])
+        try:
+            (y0, y1, n00, n01, n11), result = correct(x0, x1, p00, p01, p11, float(z[0]), r)
+        except ZeroDivisionError:
+            raise ValueError(f'innovation covariance S = H P Hᵀ + R is singular: '
+                             f'[[{p00 + r}]]') from None
+        nis = result.nis
+        if not (0.0 * (y0 + y1 + n00 + n01 + n11) == 0.0 and 0.0 <= nis < math.inf):
+            raise ValueError(f'update produced a non-finite state or an invalid NIS {nis}; '
+                             f'S = [[{result.innovation_variance}]]')
+        k0, k1 = result.gain
+        return (np.array((y0, y1)), np.array(((n00, n01), (n01, n11))),
+                UpdateResult(np.array((result.innovation,)),
+                             np.array(((result.innovation_variance,),)), nis,
+                             np.array(((k0,), (k1,)))))
+
+
+class _ParticleModel:
+    """
+    A bootstrap particle filter behind the pure ``predict(x, P, dt, u)``/``update`` interface.
+
+    The estimator keeps states as (x, P) and rewinds by going back to an older pair.
+    Each mean this model returns stands for its particles: their snapshot (particles,
+    log-weights, generator state) is kept in ``states`` under the mean's id until
+    the mean is garbage-collected. A step restores the snapshot of the mean it is
+    given, so rewinding and replaying repeats the same draws bit for bit. A mean that
+    has no particles (an initialisation, set_state) is sampled as N(x, P) by a
+    generator restarted from the seed: deterministic too.
+    """
+
+    def __init__(self, model: LinearModel, particles: int, seed: int,
+                 resample_threshold: float, states: Dict[int, object]):
+        """Run ``model`` with ``particles`` particles; keep snapshots in ``states``."""
+        self.base = model
+        self.state_names = model.state_names
+        self.measurement_names = model.measurement_names
+        self.control_names = model.control_names
+        self.dim_x, self.dim_z = model.dim_x, model.dim_z
+        self.F, self.Q, self.B, self.H, self.R = model.F, model.Q, model.B, model.H, model.R
+        self.seed = seed
+        self.states = states
+        n = model.dim_x
+        self.filter = ParticleFilter(model, np.zeros(n), np.zeros((n, n)),
+                                     n_particles=particles, seed=seed,
+                                     resample_threshold=resample_threshold)
+
+    def _load(self, x: np.ndarray, P: np.ndarray) -> None:
+        """Make the filter's particles those behind x (drawn from N(x, P) if none)."""
+        snapshot = self.states.get(id(x))
+        if snapshot is None or snapshot[0]() is not x:
+            self.filter.reset(x, P, self.seed)
+        else:
+            self.filter.restore(snapshot[1])
+
+    def _keep(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the filter's (mean, covariance), the mean remembering the particles."""
+        x, P = self.filter.mean, self.filter.covariance
+        key = id(x)
+        # A weak reference tells the mean from a later array with the same id; the
+        # snapshot goes when the mean is freed (nothing can rewind to it any more).
+        self.states[key] = (weakref.ref(x), self.filter.snapshot())
+        weakref.finalize(x, self.states.pop, key, None)
+        return x, P
+
+    def predict(self, x, P, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the particles' moments after moving them over dt_s."""
+        self._load(x, P)
+        self.filter.predict(dt_s, u)
+        return self._keep()
+
+    def predict_ahead(self, x, P, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the exact moments dt_s ahead of the particles behind x (no draws)."""
+        self._load(x, P)
+        return self.filter.predict_ahead(dt_s, u)
+
+    def update(self, x, P, z, R=None):
+        """Return (mean, covariance, UpdateResult) after weighting by z's likelihood."""
+        self._load(x, P)
+        result = self.filter.update(z, R)
+        x, P = self._keep()
+        return x, P, result
 
 
 class _Controls:
@@ -534,6 +726,9 @@ class _Controls:
 class TrainEstimator:
     """Fuses stamped measurements (and controls) of a 1-D preset: the train by default."""
 
+    fast_path = True
+    """Run the train's KF in closed form (:class:`_FastTrainModel`); False: generic."""
+
     def __init__(self, settings: EstimatorSettings = EstimatorSettings()):
         """Validate ``settings``; the filter starts uninitialised."""
         self._x: Optional[np.ndarray] = None
@@ -552,18 +747,22 @@ class TrainEstimator:
         self._controls_late = 0
         self._provisional = 0
         self.settings: Optional[EstimatorSettings] = None
+        # The particle filter's particles behind each kept mean (see _ParticleModel).
+        self._particle_states: Dict[int, object] = {}
         self._apply(settings.validated())
         p = self.preset.dim_u
         self._controls: Optional[_Controls] = _Controls(p) if p else None
 
     def _apply(self, settings: EstimatorSettings) -> None:
         """Install validated settings and everything derived from them."""
-        if self.settings is not None and settings.preset != self.settings.preset:
-            raise ValueError(f'preset cannot change on a running estimator '
-                             f'({self.settings.preset!r} -> {settings.preset!r}); '
-                             'create a new one')
+        if self.settings is not None:
+            for name in ('preset',) + FILTER_SETTINGS:
+                old, new = getattr(self.settings, name), getattr(settings, name)
+                if new != old:
+                    raise ValueError(f'{name} cannot change on a running estimator '
+                                     f'({old!r} -> {new!r}); create a new one')
         preset = resolve_preset(settings.preset)
-        model = self._make_model(settings, preset)
+        model = self._make_model(settings, preset, self._particle_states, self.fast_path)
         initial_state = as_vector('initial_state', preset.initial_state
                                   if settings.initial_state is None
                                   else settings.initial_state, preset.dim_x)
@@ -578,6 +777,8 @@ class TrainEstimator:
         # Everything is checked: install it.
         self.preset = preset
         self.model = model
+        # The particle filter predicts ahead with exact moments (no draws); others predict.
+        self._predict_ahead_function = getattr(model, 'predict_ahead', model.predict)
         self.settings = settings
         self.initial_state = initial_state
         self._initial_covariance = initial_covariance
@@ -593,13 +794,32 @@ class TrainEstimator:
             self._history.clear()
 
     @staticmethod
-    def _make_model(settings: EstimatorSettings, preset: Preset) -> LinearModel:
-        """Return the model: the preset's, plus white-noise acceleration q if set."""
+    def _make_model(settings: EstimatorSettings, preset: Preset,
+                    particle_states: Optional[Dict[int, object]] = None, fast: bool = True):
+        """
+        Return the filter's pure model: the preset's, plus white-noise acceleration q if set.
+
+        ``kf`` and ``ekf`` (an EKF of a linear model is the KF) use the linear model
+        itself, ``ukf`` its unscented transform, ``pf`` a :class:`_ParticleModel` on it
+        (keeping its particles in ``particle_states``). With ``fast``, the train's KF is
+        :class:`_FastTrainModel`, its closed form.
+        """
         q = settings.process_noise_density
         if settings.preset == 'train':
             # Seed 000's model exactly as before presets: F(dt), Q(dt) = q·[...], H = [1, 0].
-            return constant_velocity_model(WhiteNoiseAcceleration(q))
-        return _CachedModel(preset.model, WhiteNoiseAcceleration(q) if q > 0.0 else None)
+            model = constant_velocity_model(WhiteNoiseAcceleration(q))
+            if fast and settings.filter in ('kf', 'ekf'):
+                return _FastTrainModel(model, q)
+        else:
+            model = _CachedModel(preset.model, WhiteNoiseAcceleration(q) if q > 0.0 else None)
+        if settings.filter == 'ukf':
+            return UnscentedModel.from_model(model, alpha=settings.ukf_alpha,
+                                             beta=settings.ukf_beta, kappa=settings.ukf_kappa)
+        if settings.filter == 'pf':
+            return _ParticleModel(model, settings.pf_particles, settings.pf_seed,
+                                  settings.pf_resample_threshold,
+                                  {} if particle_states is None else particle_states)
+        return model
 
     @property
     def initialized(self) -> bool:
@@ -1105,9 +1325,10 @@ class TrainEstimator:
     def _predict_ahead(self, x: np.ndarray, P: np.ndarray, u=None
                        ) -> Tuple[np.ndarray, np.ndarray]:
         """Return the state horizon_s after (x, P), holding the control u."""
+        predict = self._predict_ahead_function
         if self._controls is None:
-            return self.model.predict(x, P, self.horizon_s)
-        return self.model.predict(x, P, self.horizon_s, u)
+            return predict(x, P, self.horizon_s)
+        return predict(x, P, self.horizon_s, u)
 
     def _commit(self, stamp_ns: int, x: np.ndarray, P: np.ndarray, kind: str,
                 z: np.ndarray, R: np.ndarray) -> None:
