@@ -20,6 +20,7 @@ from typing import Callable, Optional, Sequence, Tuple
 
 from kf_train.core import kalman
 from kf_train.core.kalman import UpdateResult
+from kf_train.core.models import LinearDynamicsModel
 from kf_train.core.validation import as_covariance, as_matrix, as_vector
 import numpy as np
 
@@ -169,7 +170,7 @@ def _linearised_update(x, P, y, H, R) -> Tuple[np.ndarray, np.ndarray, UpdateRes
     return x_post, P_post, UpdateResult(y, S, nis, K)
 
 
-class ExtendedModel:
+class ExtendedModel(LinearDynamicsModel):
     """
     Linear dynamics with a nonlinear measurement: the EKF counterpart of LinearModel.
 
@@ -181,34 +182,9 @@ class ExtendedModel:
     def __init__(self, F, Q, measurement, R, *, B=None, state_names=('x', 'vx', 'y', 'vy'),
                  control_names=()):
         """Store the model; R is checked against the measurement's dimension."""
-        self.F, self.Q, self.B = F, Q, B
+        super().__init__(F, Q, R, B=B, state_names=state_names,
+                         measurement_names=measurement.names, control_names=control_names)
         self.measurement = measurement
-        self.state_names = tuple(state_names)
-        self.measurement_names = tuple(measurement.names)
-        self.control_names = tuple(control_names)
-        self.R = as_covariance('R', R, measurement.dim_z)
-        if (B is None) != (not self.control_names):
-            raise ValueError('B must be given exactly when control_names are')
-
-    @property
-    def dim_x(self) -> int:
-        """Return the number of state components."""
-        return len(self.state_names)
-
-    @property
-    def dim_z(self) -> int:
-        """Return the number of measurement components."""
-        return len(self.measurement_names)
-
-    def predict(self, x, P, dt_s: float, u=None):
-        """Return (x, P) predicted over dt_s with control u (required iff B is set)."""
-        if self.B is None:
-            if u is not None:
-                raise ValueError('u given to a model without control input')
-            return kalman.predict(x, P, self.F(dt_s), self.Q(dt_s))
-        if u is None:
-            raise ValueError(f'u ({", ".join(self.control_names)}) is required')
-        return kalman.predict(x, P, self.F(dt_s), self.Q(dt_s), self.B(dt_s), u)
 
     def update(self, x, P, z, R=None):
         """Return (x, P, UpdateResult) after measurement z; R defaults to the model's."""

@@ -113,25 +113,22 @@ class ConstantVelocityModel:
 POSITION_H = np.array([[1.0, 0.0]])
 
 
-class LinearModel:
+class LinearDynamicsModel:
     """
-    A linear-Gaussian model: what a filter needs to predict and update.
+    Linear dynamics F(dt), Q(dt), B(dt) with named components; subclasses add the update.
 
-    ``F``, ``Q`` and ``B`` are callables of dt [s] (``B`` may be None for no control);
-    ``H`` and the default measurement noise ``R`` are fixed matrices. Names label the
-    state, measurement and control components (used by replay output columns).
+    The base of :class:`LinearModel` (linear measurement) and of
+    :class:`kf_train.core.ekf.ExtendedModel` (nonlinear measurement): both predict the same
+    way and differ only in how a measurement corrects the state.
     """
 
-    def __init__(self, F, Q, H, R, *, B=None, state_names=('position', 'velocity'),
-                 measurement_names=('position',), control_names=()):
-        """Store the model; H and R are checked against the names' dimensions."""
+    def __init__(self, F, Q, R, *, B, state_names, measurement_names, control_names):
+        """Store the dynamics and names; R is checked against the measurement dimension."""
         self.F, self.Q, self.B = F, Q, B
         self.state_names = tuple(state_names)
         self.measurement_names = tuple(measurement_names)
         self.control_names = tuple(control_names)
-        n, m = len(self.state_names), len(self.measurement_names)
-        self.H = as_matrix('H', H, m, n)
-        self.R = as_covariance('R', R, m)
+        self.R = as_covariance('R', R, len(self.measurement_names))
         if (B is None) != (not self.control_names):
             raise ValueError('B must be given exactly when control_names are')
 
@@ -154,6 +151,23 @@ class LinearModel:
         if u is None:
             raise ValueError(f'u ({", ".join(self.control_names)}) is required')
         return kalman.predict(x, P, self.F(dt_s), self.Q(dt_s), self.B(dt_s), u)
+
+
+class LinearModel(LinearDynamicsModel):
+    """
+    A linear-Gaussian model: what a filter needs to predict and update.
+
+    ``F``, ``Q`` and ``B`` are callables of dt [s] (``B`` may be None for no control);
+    ``H`` and the default measurement noise ``R`` are fixed matrices. Names label the
+    state, measurement and control components (used by replay output columns).
+    """
+
+    def __init__(self, F, Q, H, R, *, B=None, state_names=('position', 'velocity'),
+                 measurement_names=('position',), control_names=()):
+        """Store the model; H and R are checked against the names' dimensions."""
+        super().__init__(F, Q, R, B=B, state_names=state_names,
+                         measurement_names=measurement_names, control_names=control_names)
+        self.H = as_matrix('H', H, self.dim_z, self.dim_x)
 
     def update(self, x, P, z, R=None):
         """Return (x, P, UpdateResult) after measurement z; R defaults to the model's."""
