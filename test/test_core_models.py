@@ -199,3 +199,11 @@ def test_models_reject_bad_parameters(call, name):
     """Bad noise parameters raise ValueError naming the parameter."""
     with pytest.raises(ValueError, match=rf'^{name} must'):
         call()
+
+
+@pytest.mark.parametrize('noise', [WhiteNoiseAcceleration(1.0),
+                                   PerStepNoise([[1.0, 0.0], [0.0, 1.0]], 0.1)])
+def test_an_overflowing_dt_is_a_value_error(noise):
+    """A dt so large that Q overflows raises ValueError naming dt, not OverflowError."""
+    with pytest.raises(ValueError, match='dt'):
+        noise(1e300)

@@ -28,6 +28,13 @@ def constant_velocity_F(dt: float) -> np.ndarray:
     return np.array([[1.0, dt], [0.0, 1.0]])
 
 
+def _finite_noise(Q: np.ndarray, dt: float) -> np.ndarray:
+    """Return Q, or raise ValueError naming dt when Q overflowed."""
+    if not np.all(np.isfinite(Q)):
+        raise ValueError(f'dt = {dt} s is too large: the process noise overflows')
+    return Q
+
+
 class WhiteNoiseAcceleration:
     """Process noise from a white-noise acceleration of density q [m²/s³]."""
 
@@ -38,8 +45,13 @@ class WhiteNoiseAcceleration:
     def __call__(self, dt: float) -> np.ndarray:
         """Return Q(dt) = q · [[dt³/3, dt²/2], [dt²/2, dt]]."""
         dt = as_duration('dt', dt)
-        return self.q * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0],
-                                  [dt ** 2 / 2.0, dt]])
+        try:
+            Q = self.q * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0],
+                                   [dt ** 2 / 2.0, dt]])
+        except OverflowError:  # Python float powers raise where numpy would give inf
+            Q = np.full((2, 2), np.inf)
+        with np.errstate(invalid='ignore'):
+            return _finite_noise(Q, dt)
 
     def __repr__(self) -> str:
         """Show the density."""
@@ -75,9 +87,10 @@ class PerStepNoise:
         s1 = n * r + T * n * (n - 1) / 2.0
         s2 = n * r ** 2 + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
         a, c, b = self.Q_step[0, 0], self.Q_step[0, 1], self.Q_step[1, 1]
-        Q = np.array([[a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1],
-                      [c * s0 + b * s1, b * s0]])
-        return 0.5 * (Q + Q.T)
+        with np.errstate(over='ignore', invalid='ignore'):
+            Q = np.array([[a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1],
+                          [c * s0 + b * s1, b * s0]])
+        return _finite_noise(0.5 * (Q + Q.T), dt)
 
     def __repr__(self) -> str:
         """Show the matrix and period."""
