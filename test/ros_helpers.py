@@ -2,8 +2,10 @@
 
 import itertools
 import os
+import subprocess
+import sys
 import time
-from typing import Callable, Dict
+from typing import Callable, Dict, Sequence
 
 import rclpy
 from rclpy.context import Context
@@ -58,3 +60,23 @@ def wait_until(condition: Callable[[], bool], timeout_s: float = 10.0,
             return False
         time.sleep(poll_s)
     return True
+
+
+def assert_startup_refused(domain_id: int, module: str, assignment: str,
+                           words: Sequence[str]) -> None:
+    """Start ``module`` with ``-p assignment``: one error line naming ``words``, exit 2."""
+    process = subprocess.Popen([sys.executable, '-m', module, '--ros-args', '-p', assignment],
+                               env=isolated_env(domain_id), stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    try:
+        process.wait(timeout=30)
+    finally:
+        if process.poll() is None:
+            process.kill()
+        stdout, stderr = process.communicate(timeout=10)
+    assert process.returncode == 2, (stdout, stderr)
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith('error: '), stderr
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+    assert 'Traceback' not in stdout + stderr

@@ -10,8 +10,6 @@ exit 2.
 """
 
 import statistics
-import subprocess
-import sys
 
 from kf_train import messages
 from kf_train.core.estimator import (
@@ -21,7 +19,7 @@ from kf_train.estimator_node import EstimatorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import isolated_env
+from ros_helpers import assert_startup_refused
 
 EPOCH_NS = 1_700_000_000_000_000_000
 # Probability that a correct filter fails any one test's k-sigma checks.
@@ -239,19 +237,4 @@ def test_each_kind_converges_in_the_node(ros_context):
 ])
 def test_invalid_filter_parameter_at_startup(domain_id, assignment, words):
     """An invalid filter value at start-up: one line naming it, exit 2, no traceback."""
-    process = subprocess.Popen(
-        [sys.executable, '-m', 'kf_train.estimator_node', '--ros-args', '-p', assignment],
-        env=isolated_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True)
-    try:
-        process.wait(timeout=30)
-    finally:
-        if process.poll() is None:
-            process.kill()
-        stdout, stderr = process.communicate(timeout=10)
-    assert process.returncode == 2, (stdout, stderr)
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('error: '), stderr
-    for word in words:
-        assert word in lines[0], (word, lines[0])
-    assert 'Traceback' not in stderr + stdout
+    assert_startup_refused(domain_id, 'kf_train.estimator_node', assignment, words)

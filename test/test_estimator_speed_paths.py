@@ -11,8 +11,6 @@ The estimator's fast paths equal the plain ones.
 """
 
 import math
-import subprocess
-import sys
 
 from kf_train import messages
 from kf_train.core.estimator import EstimatorSettings, Rejected, TrainEstimator
@@ -22,7 +20,7 @@ import pytest
 from rclpy.parameter import Parameter
 from rclpy.qos import ReliabilityPolicy
 from rclpy.serialization import serialize_message
-from ros_helpers import isolated_env
+from ros_helpers import assert_startup_refused
 
 EPOCH_NS = 1_700_000_000_000_000_000
 PERIOD_NS = 100_000_000
@@ -228,19 +226,4 @@ def test_node_publishes_what_the_core_computes_after_a_frame_change(ros_context)
 ])
 def test_invalid_qos_parameter_at_startup(domain_id, assignment, words):
     """A bad QoS parameter: one line naming it, exit 2, no traceback."""
-    process = subprocess.Popen(
-        [sys.executable, '-m', 'kf_train.estimator_node', '--ros-args', '-p', assignment],
-        env=isolated_env(domain_id), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        text=True)
-    try:
-        process.wait(timeout=30)
-    finally:
-        if process.poll() is None:
-            process.kill()
-        stdout, stderr = process.communicate(timeout=10)
-    assert process.returncode == 2, (stdout, stderr)
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('error: '), stderr
-    for word in words:
-        assert word in lines[0], (word, lines[0])
-    assert 'Traceback' not in stderr + stdout
+    assert_startup_refused(domain_id, 'kf_train.estimator_node', assignment, words)

@@ -9,8 +9,6 @@ bounded waits only. Statistical bounds come from a stated false-alarm probabilit
 
 import dataclasses
 import statistics
-import subprocess
-import sys
 
 from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped, TwistStamped
 from kf_train import messages
@@ -33,7 +31,7 @@ import pytest
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from ros_helpers import isolated_env, spin_until
+from ros_helpers import assert_startup_refused, spin_until
 
 FALSE_ALARM = 1e-6
 """Probability that a correct filter fails a test's k·σ checks, all of them together."""
@@ -842,17 +840,4 @@ def test_preset_and_scenario_parameters(ros_context):
 ])
 def test_invalid_preset_or_scenario_at_startup(domain_id, module, assignment, words):
     """An unusable preset or scenario: one line naming it, exit code 2, no traceback."""
-    process = subprocess.Popen([sys.executable, '-m', module, '--ros-args', '-p', assignment],
-                               env=isolated_env(domain_id), stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
-    try:
-        process.wait(timeout=30)
-    finally:
-        if process.poll() is None:
-            process.kill()
-        stdout, stderr = process.communicate(timeout=10)
-    assert process.returncode == 2, (stdout, stderr)
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith('error: '), stderr
-    assert all(word in lines[0] for word in words), lines[0]
-    assert 'Traceback' not in stdout + stderr
+    assert_startup_refused(domain_id, module, assignment, words)
