@@ -23,7 +23,7 @@ a step that would overflow raises, and either leaves the filter exactly as it wa
 import math
 from typing import Callable, NamedTuple, Optional, Tuple, Union
 
-from kf_train.core.models import PerStepNoise, WhiteNoiseAcceleration
+from kf_train.core.models import per_step_noise_terms, PerStepNoise, WhiteNoiseAcceleration
 from kf_train.core.validation import as_covariance, as_duration, as_finite_array, as_vector
 import numpy as np
 
@@ -46,27 +46,6 @@ def _number(name: str, value) -> float:
 def white_noise_terms(q: float, dt: float) -> Tuple[float, float, float]:
     """Return (Q00, Q01, Q11) of q·[[dt³/3, dt²/2], [dt²/2, dt]], as models.py computes it."""
     return q * (dt ** 3 / 3.0), q * (dt ** 2 / 2.0), q * dt
-
-
-def per_step_noise_terms(a: float, c: float, b: float, period_s: float,
-                         dt: float) -> Tuple[float, float, float]:
-    """
-    Return (Q00, Q01, Q11) of PerStepNoise([[a, c], [c, b]], period_s) over dt.
-
-    The same sums, in the same order, as :meth:`PerStepNoise.__call__` (see there for
-    the derivation): n whole periods and a remainder r, S0 = n + r/T,
-    S1 = n·r + T·n(n-1)/2, S2 = n·r² + r·T·n(n-1) + T²·(n-1)n(2n-1)/6.
-    """
-    T = period_s
-    n = math.floor(dt / T)
-    r = dt - n * T
-    if r < 0.0:  # rounding when dt is a whole number of periods
-        n, r = n - 1, r + T
-    s0 = n + r / T
-    s1 = n * r + T * n * (n - 1) / 2.0
-    s2 = n * r ** 2 + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
-    q01 = c * s0 + b * s1
-    return a * s0 + 2.0 * c * s1 + b * s2, q01, b * s0
 
 
 def noise_terms_function(noise: NoiseModel) -> Callable[[float], Tuple[float, float, float]]:

@@ -15,7 +15,7 @@ Two ways to give the process noise, both producing Q(dt) for any dt >= 0:
 """
 
 import math
-from typing import Union
+from typing import Tuple, Union
 
 from kf_train.core import kalman
 from kf_train.core.validation import as_covariance, as_duration, as_matrix
@@ -58,6 +58,31 @@ class WhiteNoiseAcceleration:
         return f'WhiteNoiseAcceleration(q={self.q!r})'
 
 
+def per_step_noise_terms(a: float, c: float, b: float, period_s: float,
+                         dt: float) -> Tuple[float, float, float]:
+    """
+    Return (Q00, Q01, Q11) of a per-step matrix [[a, c], [c, b]] accumulated over dt.
+
+    Full steps i = 1..n end at i·T; their noise is carried through the rest,
+    s = dt - i·T = r + j·T (j = n - i = 0..n-1), by F(s). The remainder r ends at dt
+    (s = 0) with weight r/T. With Q_step = [[a, c], [c, b]]:
+      F(s) Q_step F(s)ᵀ = [[a + 2cs + bs², c + bs], [c + bs, b]],
+    so Q(dt) needs only the weighted sums S0 = Σw, S1 = Σws, S2 = Σws². Written in r
+    and j, every term is >= 0 (no cancellation), and dt = T (n = 1, r = 0) gives
+    S1 = S2 = 0 exactly, hence Q(T) == Q_step bit for bit. Plain floats, so the
+    closed-form fast path (kf_train.core.fast) shares it.
+    """
+    T = period_s
+    n = math.floor(dt / T)
+    r = dt - n * T
+    if r < 0.0:  # rounding when dt is a whole number of periods
+        n, r = n - 1, r + T
+    s0 = n + r / T
+    s1 = n * r + T * n * (n - 1) / 2.0
+    s2 = n * r ** 2 + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
+    return a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1, b * s0
+
+
 class PerStepNoise:
     """A fixed process-noise matrix Q_step added once per nominal period [s]."""
 
@@ -71,25 +96,10 @@ class PerStepNoise:
     def __call__(self, dt: float) -> np.ndarray:
         """Return the noise accumulated over dt by steps of period_s."""
         dt = as_duration('dt', dt)
-        T = self.period_s
-        n = math.floor(dt / T)
-        r = dt - n * T
-        if r < 0.0:  # rounding when dt is a whole number of periods
-            n, r = n - 1, r + T
-        # Full steps i = 1..n end at i·T; their noise is carried through the rest,
-        # s = dt - i·T = r + j·T (j = n - i = 0..n-1), by F(s). The remainder r ends
-        # at dt (s = 0) with weight r/T. With Q_step = [[a, c], [c, b]]:
-        #   F(s) Q_step F(s)ᵀ = [[a + 2cs + bs², c + bs], [c + bs, b]],
-        # so Q(dt) needs only the weighted sums S0 = Σw, S1 = Σws, S2 = Σws².
-        # Written in r and j, every term is >= 0 (no cancellation), and dt = T
-        # (n = 1, r = 0) gives S1 = S2 = 0 exactly, hence Q(T) == Q_step bit for bit.
-        s0 = n + r / T
-        s1 = n * r + T * n * (n - 1) / 2.0
-        s2 = n * r ** 2 + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
         a, c, b = self.Q_step[0, 0], self.Q_step[0, 1], self.Q_step[1, 1]
         with np.errstate(over='ignore', invalid='ignore'):
-            Q = np.array([[a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1],
-                          [c * s0 + b * s1, b * s0]])
+            q00, q01, q11 = per_step_noise_terms(a, c, b, self.period_s, dt)
+            Q = np.array([[q00, q01], [q01, q11]])
         return _finite_noise(0.5 * (Q + Q.T), dt)
 
     def __repr__(self) -> str:
