@@ -1,10 +1,10 @@
-"""Tests of kf_train.core.chi2: the scipy-free χ² distribution, checked against scipy."""
+"""Tests of kf_train.filters.chi2: the scipy-free χ² distribution, checked against scipy."""
 
 import math
 import subprocess
 import sys
 
-from kf_train.core.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
+from kf_train.filters.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
 import pytest
 from scipy import stats
 
@@ -73,8 +73,8 @@ def test_invalid_arguments(call, name):
 
 def test_nodes_do_not_import_scipy():
     """Neither the core nor the estimator node pulls scipy in."""
-    code = ('import sys, kf_train.core, kf_train.core.chi2, kf_train.estimator_node, '
-            'kf_train.simulator_node; print("scipy" in sys.modules)')
+    code = ('import sys, kf_train.core, kf_train.filters.chi2, kf_train.ros.estimator_node, '
+            'kf_train.ros.simulator_node; print("scipy" in sys.modules)')
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                             timeout=60, check=True)
     assert result.stdout.strip() == 'False'

@@ -10,13 +10,13 @@ import dataclasses
 import math
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.core.chi2 import chi2_quantile
-from kf_train.core.estimator import EstimatorSettings, NS_PER_S, Rejected, TrainEstimator
-from kf_train.core.faults import Delivery, FaultInjector, FaultSettings
-from kf_train.core.simulation import TrainSimulation
-from kf_train.estimator_node import EstimatorNode
-from kf_train.messages import from_measurement_msg, stamp_to_ns
-from kf_train.simulator_node import SimulatorNode
+from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, Rejected, TrainEstimator
+from kf_train.filters.chi2 import chi2_quantile
+from kf_train.ros.estimator_node import EstimatorNode
+from kf_train.ros.messages import from_measurement_msg, stamp_to_ns
+from kf_train.ros.simulator_node import SimulatorNode
+from kf_train.sim.faults import Delivery, FaultInjector, FaultSettings
+from kf_train.sim.simulation import TrainSimulation
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
