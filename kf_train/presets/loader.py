@@ -41,10 +41,9 @@ from dataclasses import dataclass
 import os
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
-from kf_train.filters.ekf import ExtendedModel, RangeBearing
-from kf_train.filters.models import LinearModel
-from kf_train.filters.validation import (
-    as_covariance, as_duration, as_finite_array, as_matrix, as_vector)
+from kf_train.filters import (
+    as_covariance, as_duration, as_finite_array, as_matrix, as_vector, ExtendedModel, LinearModel,
+    per_step_weights, RangeBearing, white_noise_integrals)
 import numpy as np
 
 PRESET_DIR = os.path.dirname(os.path.abspath(__file__))
@@ -175,29 +174,6 @@ class ControlMatrix:
 # Dynamics: F(dt) = I + dt·A with A² = 0, and the process noise
 # ---------------------------------------------------------------------------
 
-def per_step_weights(dt: np.ndarray, period_s: float) -> Tuple[np.ndarray, ...]:
-    """
-    Return the sums S0 = Σw, S1 = Σw·s, S2 = Σw·s² of per-step noise over each dt.
-
-    A dt of n whole periods T plus a remainder r collects the noise of n full steps,
-    the step ending at i·T carried to dt over s = dt - i·T = r + j·T (j = 0..n-1,
-    weight 1), and a fraction r/T of a step at s = 0. Written in r and j every term
-    is >= 0 (no cancellation), and dt = T gives (1, 0, 0) exactly.
-    """
-    dt = np.asarray(dt, dtype=float)
-    T = float(period_s)
-    n = np.floor(dt / T)
-    r = dt - n * T
-    low = r < 0.0  # rounding when dt is a whole number of periods
-    n = np.where(low, n - 1.0, n)
-    r = np.where(low, r + T, r)
-    s0 = n + r / T                                              # Σ w
-    s1 = n * r + T * n * (n - 1.0) / 2.0                        # Σ w·s
-    s2 = (n * r ** 2 + r * T * n * (n - 1.0)
-          + T ** 2 * (n - 1.0) * n * (2.0 * n - 1.0) / 6.0)     # Σ w·s²
-    return s0, s1, s2
-
-
 class Dynamics:
     """
     The process model of a preset, vectorised over dt.
@@ -262,9 +238,10 @@ class Dynamics:
         if self.continuous is not None:
             Qc = self.continuous
             # ∫₀^dt F(s) Qc F(s)ᵀ ds = dt·Qc + dt²/2·(A Qc + Qc Aᵀ) + dt³/3·A Qc Aᵀ
-            Q += (dt[:, None, None] * Qc
-                  + (dt ** 2 / 2.0)[:, None, None] * (A @ Qc + Qc @ A.T)
-                  + (dt ** 3 / 3.0)[:, None, None] * (A @ Qc @ A.T))
+            third, half, one = white_noise_integrals(dt)
+            Q += (one[:, None, None] * Qc
+                  + half[:, None, None] * (A @ Qc + Qc @ A.T)
+                  + third[:, None, None] * (A @ Qc @ A.T))
         if self.control_std is not None:
             Bd = self.B.batch(dt) * self.control_std  # B(dt) diag(std)
             Q += Bd @ np.swapaxes(Bd, -1, -2)         # B diag(std²) Bᵀ
