@@ -11,10 +11,10 @@ import os
 import struct
 
 from hypothesis import given, settings, strategies as st
-from kf_train.batch.series import run_series
+from kf_train.batch import run_series
 from kf_train.cli.replay import main, read_table
 from kf_train.io import csvio
-from kf_train.presets.loader import load_preset
+from kf_train.presets import load_preset
 import numpy as np
 import pytest
 

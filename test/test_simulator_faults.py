@@ -1,7 +1,7 @@
 """
 Tests of fault injection (core.faults, the simulator node) and the estimator's handling of it.
 
-The core tests feed :class:`FaultInjector` output straight into :class:`TrainEstimator`;
+The core tests feed :class:`FaultInjector` output straight into :class:`StreamEstimator`;
 the node tests run the simulator and the estimator nodes in one process and compare
 with the core run offline on exactly what the simulator delivered.
 """
@@ -10,13 +10,12 @@ import dataclasses
 import math
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, Rejected, TrainEstimator
-from kf_train.filters.chi2 import chi2_quantile
+from kf_train.estimator import EstimatorSettings, NS_PER_S, Rejected, StreamEstimator
+from kf_train.filters import chi2_quantile
 from kf_train.ros.estimator_node import EstimatorNode
 from kf_train.ros.messages import from_measurement_msg, stamp_to_ns
 from kf_train.ros.simulator_node import SimulatorNode
-from kf_train.sim.faults import Delivery, FaultInjector, FaultSettings
-from kf_train.sim.simulation import TrainSimulation
+from kf_train.sim import Delivery, FaultInjector, FaultSettings, TrainSimulation
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
@@ -61,7 +60,7 @@ def _binomial_ok(count, n, p):
 
 def _run(settings, deliveries):
     """Return the estimator after processing the deliveries, and its rejections."""
-    estimator = TrainEstimator(settings)
+    estimator = StreamEstimator(settings)
     rejected = []
     for d in deliveries:
         try:
@@ -96,7 +95,7 @@ def test_dropouts_are_survived():
     assert injector.dropped + len(deliveries) == len(samples)
     assert _binomial_ok(injector.dropped, len(samples), 0.3)
     estimator, rejected = _run(ROBUST, deliveries)
-    assert rejected == [] and estimator.fused_count == len(deliveries)
+    assert rejected == [] and estimator.stats().fused == len(deliveries)
     x, P = estimator.state
     error = np.array([samples[-1].true_position_m, samples[-1].true_velocity_mps]) - x
     assert error @ np.linalg.solve(P, error) < chi2_quantile(0.9999, 2)
@@ -132,7 +131,7 @@ def test_reordered_samples_are_fused_as_if_in_order():
     held = 0.18 / 1.18
     assert _binomial_ok(late, len(samples), held * 0.9)
     estimator, rejected = _run(ROBUST, deliveries)
-    assert rejected == [] and estimator.out_of_sequence_count == late
+    assert rejected == [] and estimator.stats().out_of_sequence == late
     in_order, _ = _run(ROBUST, sorted(deliveries, key=lambda d: d.stamp_ns))
     np.testing.assert_allclose(estimator.state[0], in_order.state[0], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(estimator.state[1], in_order.state[1], rtol=1e-9, atol=1e-12)
@@ -165,7 +164,7 @@ def test_a_stamp_jump_back_is_followed_as_a_restarted_stream():
         stamps[49] - 100 * NS_PER_S)
     estimator, rejected = _run(ROBUST, deliveries)
     assert [r for _, r in rejected] == ['stale_stamp'] * (ROBUST.restart_after_stale - 1)
-    assert estimator.reset_counts['stream_restart'] == 1
+    assert estimator.stats().resets['stream_restart'] == 1
     x, P = estimator.state
     error = np.array([samples[-1].true_position_m, samples[-1].true_velocity_mps]) - x
     assert error @ np.linalg.solve(P, error) < chi2_quantile(0.9999, 2)
@@ -230,9 +229,9 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
     assert faults.dropped > 0 and faults.outliers > 0 and faults.reordered > 0
     assert simulator.delivered == 150 - faults.dropped
     measurements = [from_measurement_msg(m) for m in delivered]
-    outliers = estimator.estimator.rejection_counts['outlier']
+    outliers = estimator.estimator.stats().rejections['outlier']
     assert outliers > 0 and outliers == estimator.rejected
-    offline = TrainEstimator(estimator.estimator.settings)
+    offline = StreamEstimator(estimator.estimator.settings)
     rejected = set()
     for m in sorted(measurements, key=lambda m: m.stamp_ns):
         try:
@@ -246,7 +245,7 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
         if m.stamp_ns not in rejected:
             late += m.stamp_ns < newest
             newest = max(newest, m.stamp_ns)
-    assert estimator.estimator.out_of_sequence_count == late > 0
+    assert estimator.estimator.stats().out_of_sequence == late > 0
     np.testing.assert_allclose(estimator.estimator.state[0], offline.state[0], rtol=1e-9,
                                atol=1e-9)
     assert ros_helpers.spin_until(executor, lambda: len(estimates) == estimator.fused, 5.0)
@@ -278,7 +277,7 @@ def test_a_simulated_clock_jump_resets_the_estimator(ros_context, executor):
         {'use_sim_time': True})
     assert ros_helpers.spin_until(executor, lambda: simulator.done.done(), 30.0)
     assert ros_helpers.spin_until(executor, lambda: estimator.received == 100, 5.0)
-    resets = estimator.estimator.reset_counts
+    resets = estimator.estimator.stats().resets
     assert resets['clock_jump'] == 1, resets
     assert resets['stream_restart'] == 0
     # It fused the stream after the jump: everything but at most a sample in flight.

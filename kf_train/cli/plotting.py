@@ -23,12 +23,10 @@ import os
 import sys
 from typing import Dict, List, Optional, Sequence
 
-from kf_train.batch.series import run_series
-from kf_train.filters.ekf import RangeBearing
-from kf_train.filters.validation import as_duration, as_finite_array, as_vector
-from kf_train.presets.loader import available_presets, load_preset, Preset
-from kf_train.sim import baselines
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.batch import run_series
+from kf_train.filters import as_duration, as_finite_array, as_vector, RangeBearing
+from kf_train.presets import available_presets, load_preset, Preset
+from kf_train.sim import baselines, scenario_for_preset
 import numpy as np
 
 EXIT_OK = 0

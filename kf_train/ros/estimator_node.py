@@ -108,14 +108,12 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
-from kf_train.estimator.estimator import (
-    EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
-    LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S,
-    PF_PARTICLES_RANGE, PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, Rejected,
-    RESTART_AFTER_STALE_RANGE, TrainEstimator, UKF_ALPHA_RANGE, UKF_BETA_RANGE,
-    UKF_KAPPA_RANGE)
-from kf_train.filters.chi2 import chi2_mean_bounds
-from kf_train.filters.family import FILTER_KINDS
+from kf_train.estimator import (
+    EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS, LIVE_PRESETS,
+    MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S, PF_PARTICLES_RANGE,
+    PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, Rejected,
+    RESTART_AFTER_STALE_RANGE, StreamEstimator, UKF_ALPHA_RANGE, UKF_BETA_RANGE, UKF_KAPPA_RANGE)
+from kf_train.filters import chi2_mean_bounds, FILTER_KINDS
 from kf_train.ros import messages
 from kf_train.ros.parameters import BIG, declare
 from kf_train.ros.runner import executor_option, run, StartupError
@@ -212,7 +210,7 @@ class EstimatorNode(Node):
         try:
             settings = EstimatorSettings(
                 **{name: _setting_value(name, value) for name, value in values.items()})
-            self.estimator = TrainEstimator(settings)
+            self.estimator = StreamEstimator(settings)
         except ValueError as error:
             raise StartupError(f'invalid parameter: {error}') from None
         self.preset = self.estimator.preset
@@ -611,6 +609,7 @@ class EstimatorNode(Node):
             self.get_logger().info('measurements are being fused again')
             self._timed_out = False
         settings = self.estimator.settings
+        stats = self.estimator.stats()
         values = [
             ('preset', self.preset.name),
             ('filter', settings.filter),
@@ -621,22 +620,22 @@ class EstimatorNode(Node):
              'never' if self._last_fused_mono is None else f'{age:.3f}'),
             ('received', str(self.received)),
             ('fused', str(self.fused)),
-            ('fused_out_of_sequence', str(self.estimator.out_of_sequence_count)),
+            ('fused_out_of_sequence', str(stats.out_of_sequence)),
             ('rejected', str(self.rejected)),
         ]
         values += [(f'rejected.{reason}', str(count))
-                   for reason, count in self.estimator.rejection_counts.items()]
-        resets = self.estimator.reset_counts
+                   for reason, count in stats.rejections.items()]
+        resets = stats.resets
         values.append(('resets', str(sum(resets.values()))))
         values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
         values.append(('set_state_refused', str(self.set_state_refused)))
         if self.estimator.has_control:
             values.append(('controls_received', str(self.controls_received)))
             values += [(f'controls.{key}', str(count))
-                       for key, count in self.estimator.control_counts.items()]
+                       for key, count in stats.controls.items()]
             values.append(('controls_rejected', str(self.controls_rejected)))
             values += [(f'controls_rejected.{reason}', str(count)) for reason, count
-                       in self.estimator.control_rejection_counts.items()]
+                       in stats.control_rejections.items()]
         model = self.estimator.model
         regularisations = getattr(model, 'regularisations', None)
         if regularisations is not None:

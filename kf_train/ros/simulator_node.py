@@ -48,14 +48,13 @@ import dataclasses
 import heapq
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.estimator.estimator import NS_PER_S
+from kf_train.estimator import NS_PER_S
 from kf_train.ros import messages
 from kf_train.ros.parameters import BIG, declare
 from kf_train.ros.runner import run, StartupError
-from kf_train.sim.faults import FaultInjector, FaultSettings
-from kf_train.sim.scenario_streams import (
+from kf_train.sim import (
     CAR_ACCELERATION_MPS2, CONTROL_NAMES, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
-    make_stream, ROBOT_SPEED_STD_MPS, SCENARIOS)
+    FaultInjector, FaultSettings, make_stream, ROBOT_SPEED_STD_MPS, SCENARIOS)
 from nav_msgs.msg import Odometry
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
