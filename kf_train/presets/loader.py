@@ -456,85 +456,17 @@ def _build(data: Mapping[str, Any], source: str) -> Preset:
     states = _names(data, 'states')
     measurements = _names(data, 'measurements')
     controls = _names(data, 'controls', required=False)
-    n, m, p = len(states), len(measurements), len(controls)
+    n, m = len(states), len(measurements)
     if 'motion' not in data:
         raise ValueError("'motion' is required")
     A = _motion(data['motion'], states)
-
-    if p:
-        if 'B' not in data:
-            raise ValueError("'B' is required when 'controls' are given")
-        B = ControlMatrix(data['B'], n, p, 'B')
-    else:
-        if data.get('B') is not None:
-            raise ValueError("'B' is given but 'controls' is not")
-        B = None
-
-    noise = data.get('process_noise')
-    if not isinstance(noise, Mapping) or not noise:
-        raise ValueError(f"'process_noise' must be a mapping with one or more of "
-                         f"{', '.join(_NOISE_KEYS)}, got {noise!r}")
-    for key in noise:
-        if key not in _NOISE_KEYS:
-            raise ValueError(f"unknown key 'process_noise.{key}'; use {', '.join(_NOISE_KEYS)}")
-    if 'nominal_period_s' not in data:
-        raise ValueError("'nominal_period_s' is required")
-    period = _number('nominal_period_s', data['nominal_period_s'])
-    if period <= 0.0:
-        raise ValueError(f'nominal_period_s must be > 0, got {period}')
-    per_step = None if noise.get('per_step') is None else _covariance(
-        'process_noise.per_step', noise['per_step'], n)
-    continuous = None if noise.get('continuous') is None else _covariance(
-        'process_noise.continuous', noise['continuous'], n)
-    dynamics = Dynamics(A, period_s=period, per_step=per_step, continuous=continuous,
-                        control_std=noise.get('control_std'), B=B)
-
+    dynamics, period = _dynamics(data, A, n, len(controls))
     if 'R' not in data:
         raise ValueError("'R' is required")
     R = _covariance('R', data['R'], m)
     if float(np.min(np.linalg.eigvalsh(R))) <= 0.0:
         raise ValueError(f'R must be positive definite, got {R.tolist()}')
-
-    kind = _text(data, 'measurement_model', 'linear')
-    range_keys = ('position_states', 'sensor_position_m', 'min_range_m')
-    if kind == 'linear':
-        for key in range_keys:
-            if key in data:
-                raise ValueError(f"'{key}' applies only to measurement_model range_bearing")
-        if data.get('H') is None:
-            missing = [name for name in measurements if name not in states]
-            if missing:
-                raise ValueError(f"'H' is required: measurement {missing[0]!r} is not a state")
-            H = np.zeros((m, n))
-            for i, name in enumerate(measurements):
-                H[i, states.index(name)] = 1.0
-        else:
-            H = as_matrix('H', data['H'], m, n)
-        model = LinearModel(dynamics.F, dynamics.Q, H, R, B=dynamics.control if p else None,
-                            state_names=states, measurement_names=measurements,
-                            control_names=controls)
-    elif kind == 'range_bearing':
-        if 'H' in data:
-            raise ValueError("'H' does not apply to measurement_model range_bearing")
-        if measurements != ('bearing', 'range'):
-            raise ValueError(
-                f"'measurements' must be [bearing, range] for range_bearing, got "
-                f'{list(measurements)}')
-        position_states = _names(data, 'position_states', required=False) or ('x', 'y')
-        if len(position_states) != 2 or any(s not in states for s in position_states):
-            raise ValueError(f"'position_states' must name two states, got "
-                             f'{list(position_states)}')
-        sensor = as_vector('sensor_position_m', data.get('sensor_position_m', [0.0, 0.0]), 2)
-        min_range = _number('min_range_m', data.get('min_range_m', 1e-6))
-        measurement = RangeBearing(dim_x=n, x_index=states.index(position_states[0]),
-                                   y_index=states.index(position_states[1]),
-                                   sensor_position_m=sensor, min_range_m=min_range)
-        model = ExtendedModel(dynamics.F, dynamics.Q, measurement, R,
-                              B=dynamics.control if p else None, state_names=states,
-                              control_names=controls)
-    else:
-        raise ValueError(f"'measurement_model' must be linear or range_bearing, got {kind!r}")
-
+    model = _measurement_model(data, dynamics, R, states, measurements, controls)
     aliases = _aliases(data.get('measurement_aliases'), measurements)
     for key in ('initial_state', 'initial_covariance'):
         if key not in data:
@@ -551,6 +483,79 @@ def _build(data: Mapping[str, Any], source: str) -> Preset:
                   dynamics=dynamics, model=model, initial_state=x0, initial_covariance=P0,
                   nominal_period_s=period, horizon_s=horizon,
                   measurement_aliases=aliases)
+
+
+def _dynamics(data: Mapping[str, Any], A: np.ndarray, n: int, p: int) -> Tuple[Dynamics, float]:
+    """Return the preset's Dynamics (B, process noise, period) and its period [s]."""
+    if p:
+        if 'B' not in data:
+            raise ValueError("'B' is required when 'controls' are given")
+        B = ControlMatrix(data['B'], n, p, 'B')
+    else:
+        if data.get('B') is not None:
+            raise ValueError("'B' is given but 'controls' is not")
+        B = None
+    noise = data.get('process_noise')
+    if not isinstance(noise, Mapping) or not noise:
+        raise ValueError(f"'process_noise' must be a mapping with one or more of "
+                         f"{', '.join(_NOISE_KEYS)}, got {noise!r}")
+    for key in noise:
+        if key not in _NOISE_KEYS:
+            raise ValueError(f"unknown key 'process_noise.{key}'; use {', '.join(_NOISE_KEYS)}")
+    if 'nominal_period_s' not in data:
+        raise ValueError("'nominal_period_s' is required")
+    period = _number('nominal_period_s', data['nominal_period_s'])
+    if period <= 0.0:
+        raise ValueError(f'nominal_period_s must be > 0, got {period}')
+    per_step = None if noise.get('per_step') is None else _covariance(
+        'process_noise.per_step', noise['per_step'], n)
+    continuous = None if noise.get('continuous') is None else _covariance(
+        'process_noise.continuous', noise['continuous'], n)
+    return Dynamics(A, period_s=period, per_step=per_step, continuous=continuous,
+                    control_std=noise.get('control_std'), B=B), period
+
+
+def _measurement_model(data: Mapping[str, Any], dynamics: Dynamics, R: np.ndarray,
+                       states: Tuple[str, ...], measurements: Tuple[str, ...],
+                       controls: Tuple[str, ...]):
+    """Return the preset's model: linear (H given or selecting states) or range-bearing."""
+    n, m = len(states), len(measurements)
+    B = dynamics.control if controls else None
+    kind = _text(data, 'measurement_model', 'linear')
+    if kind == 'linear':
+        for key in ('position_states', 'sensor_position_m', 'min_range_m'):
+            if key in data:
+                raise ValueError(f"'{key}' applies only to measurement_model range_bearing")
+        if data.get('H') is None:
+            missing = [name for name in measurements if name not in states]
+            if missing:
+                raise ValueError(f"'H' is required: measurement {missing[0]!r} is not a state")
+            H = np.zeros((m, n))
+            for i, name in enumerate(measurements):
+                H[i, states.index(name)] = 1.0
+        else:
+            H = as_matrix('H', data['H'], m, n)
+        return LinearModel(dynamics.F, dynamics.Q, H, R, B=B, state_names=states,
+                           measurement_names=measurements, control_names=controls)
+    if kind != 'range_bearing':
+        raise ValueError(f"'measurement_model' must be linear or range_bearing, got {kind!r}")
+    if 'H' in data:
+        raise ValueError("'H' does not apply to measurement_model range_bearing")
+    if measurements != ('bearing', 'range'):
+        raise ValueError(
+            f"'measurements' must be [bearing, range] for range_bearing, got "
+            f'{list(measurements)}')
+    position_states = _names(data, 'position_states', required=False) or ('x', 'y')
+    if len(position_states) != 2 or any(s not in states for s in position_states):
+        raise ValueError(f"'position_states' must name two states, got "
+                         f'{list(position_states)}')
+    sensor = as_vector('sensor_position_m', data.get('sensor_position_m', [0.0, 0.0]), 2)
+    min_range = _number('min_range_m', data.get('min_range_m', 1e-6))
+    measurement = RangeBearing(dim_x=n, x_index=states.index(position_states[0]),
+                               y_index=states.index(position_states[1]),
+                               sensor_position_m=sensor, min_range_m=min_range)
+    return ExtendedModel(dynamics.F, dynamics.Q, measurement, R, B=B, state_names=states,
+                         control_names=controls)
 
 
 def _aliases(value, measurements: Sequence[str]) -> Dict[str, Tuple[str, ...]]:
