@@ -161,15 +161,7 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
     context = demo_nodes.Context()
     saved_range = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
     try:
-        # The estimator first: its subscription exists before the simulator looks.
-        children['estimator'] = _start('estimator', [
-            '-p', 'initialization:=prior', '-p', f'horizon_s:={HORIZON_S!r}'],
-            env, output_dir)
-        children['simulator'] = _start('simulator', [
-            '-p', f'seed:={seed}', '-p', f'rate_hz:={RATE_HZ!r}',
-            '-p', f'max_samples:={SAMPLES}',
-            # Hold the first sample until told how many subscribers to wait for.
-            '-p', f'min_subscribers:={HOLD_SUBSCRIBERS}'], env, output_dir)
+        _start_nodes(children, seed, env, output_dir)
         _progress(f'started the estimator (pid {children["estimator"].process.pid}) and '
                   f'the simulator (pid {children["simulator"].process.pid})')
         # rcl reads the discovery range from the environment at init.
@@ -217,6 +209,20 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
     (output_dir / 'report.txt').write_text(report + '\n')
     _progress(f'wrote report.txt and series.csv to {output_dir}')
     return report
+
+
+def _start_nodes(children: Dict[str, _Child], seed: int, env: Dict[str, str],
+                 output_dir: Path) -> None:
+    """Start the estimator and the simulator (holding its samples) into ``children``."""
+    # The estimator first: its subscription exists before the simulator looks.
+    children['estimator'] = _start('estimator', [
+        '-p', 'initialization:=prior', '-p', f'horizon_s:={HORIZON_S!r}'],
+        env, output_dir)
+    children['simulator'] = _start('simulator', [
+        '-p', f'seed:={seed}', '-p', f'rate_hz:={RATE_HZ!r}',
+        '-p', f'max_samples:={SAMPLES}',
+        # Hold the first sample until told how many subscribers to wait for.
+        '-p', f'min_subscribers:={HOLD_SUBSCRIBERS}'], env, output_dir)
 
 
 def demo_environment(environ) -> Dict[str, str]:

@@ -296,6 +296,35 @@ class FastTrainFilter:
         rs = _series('R', R, n)
         if min(rs, default=0.0) < 0.0:
             raise ValueError(f'R must be >= 0, got {min(rs)}')
+        flat, stopped = self._rows(z.tolist(), dts, rs)
+        out = np.fromiter(flat, float, len(flat)).reshape(-1, 7)
+        nis = out[:, 5] * out[:, 5] / out[:, 6]  # y² / S, as step() computes it
+        good = np.isfinite(out).all(axis=1) & (nis >= 0.0) & (nis < _INF)
+        last = out.shape[0] if good.all() else int(np.argmin(good))
+        if last < n:
+            # Leave the filter after the last good row; name the failing row's cause.
+            if last > 0:
+                self._commit_row(out[last - 1], float(nis[last - 1]))
+            if last == out.shape[0] and stopped:
+                raise ValueError(f'row {last}: {stopped}') from None
+            try:
+                self.step(z[last], dts[last], rs[last])
+            except ValueError as error:
+                raise ValueError(f'row {last}: {error}') from None
+            raise AssertionError(f'row {last} failed in run() but not in step()')
+        if n:
+            self._commit_row(out[-1], float(nis[-1]))
+        return FastRun(x=out[:, 0:2], P=_covariances(out[:, 2], out[:, 3], out[:, 4]),
+                       innovation=out[:, 5], innovation_variance=out[:, 6], nis=nis)
+
+    def _rows(self, zs: list, dts: list, rs: list):
+        """
+        Return (flat, stopped): (x0, x1, P00, P01, P11, y, S) of each row, in one list.
+
+        ``stopped`` is False when every row ran, None when S = 0 stopped the loop (the
+        row after the last one kept; step() names it) and the ValueError of Q(dt) when
+        that stopped it. The filter itself is not changed.
+        """
         x0, x1, p00, p01, p11 = self._s[:5]
         q_dt, q00, q01, q11, _ = self._c
         # One flat list of floats: a list of per-row tuples would keep the garbage
@@ -303,7 +332,7 @@ class FastTrainFilter:
         flat = []
         extend = flat.extend
         try:
-            for z_i, dt, r in zip(z.tolist(), dts, rs):
+            for z_i, dt, r in zip(zs, dts, rs):
                 if dt != q_dt:
                     q00, q01, q11 = self._noise_for(dt)
                     q_dt = dt
@@ -325,30 +354,10 @@ class FastTrainFilter:
                 x1 = x1 + k1 * y
                 extend((x0, x1, p00, p01, p11, y, s))
         except ZeroDivisionError:
-            stopped = None  # S = 0 in the row after the last one kept: step() names it
+            return flat, None
         except ValueError as error:
-            stopped = error  # Q(dt) failed in the row after the last one kept
-        else:
-            stopped = False
-        out = np.fromiter(flat, float, len(flat)).reshape(-1, 7)
-        nis = out[:, 5] * out[:, 5] / out[:, 6]  # y² / S, as step() computes it
-        good = np.isfinite(out).all(axis=1) & (nis >= 0.0) & (nis < _INF)
-        last = out.shape[0] if good.all() else int(np.argmin(good))
-        if last < n:
-            # Leave the filter after the last good row; name the failing row's cause.
-            if last > 0:
-                self._commit_row(out[last - 1], float(nis[last - 1]))
-            if last == out.shape[0] and stopped:
-                raise ValueError(f'row {last}: {stopped}') from None
-            try:
-                self.step(z[last], dts[last], rs[last])
-            except ValueError as error:
-                raise ValueError(f'row {last}: {error}') from None
-            raise AssertionError(f'row {last} failed in run() but not in step()')
-        if n:
-            self._commit_row(out[-1], float(nis[-1]))
-        return FastRun(x=out[:, 0:2], P=_covariances(out[:, 2], out[:, 3], out[:, 4]),
-                       innovation=out[:, 5], innovation_variance=out[:, 6], nis=nis)
+            return flat, error
+        return flat, False
 
     def _commit_row(self, row: np.ndarray, nis: float) -> None:
         """Set the state and statistics from a row of run(): (x0, x1, P00, P01, P11, y, S)."""
