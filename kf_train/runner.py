@@ -115,8 +115,9 @@ def _one_line(error: Exception) -> str:
 # callbacks runs. So in 'events' mode the runner installs its own SIGINT and SIGTERM
 # handlers, which complete a stop future, and gives the node a heartbeat timer so that
 # a callback runs at least every HEARTBEAT_S even when no message arrives; the spin
-# then returns within about HEARTBEAT_S of the signal. test/test_events_executor.py
-# proves the exit (code 0, no traceback, bounded time) at high message rates.
+# then returns within about HEARTBEAT_S of the signal.
+# test/integration/test_events_executor.py proves the exit (code 0, no traceback,
+# bounded time) at high message rates.
 
 EXECUTORS = ('single_threaded', 'events')
 """Values of ``--executor``: rclpy's SingleThreadedExecutor (the default) or its
