@@ -117,7 +117,7 @@ colcon: setup
 	@ls -l $(COLCON_WS)/install/kf_train/lib/kf_train/
 
 bench: setup
-	$(PY) -m kf_train.bench
+	$(PY) benchmarks/bench.py
 
 clean:
 	rm -rf build/ install/ log/ *.egg-info

@@ -51,8 +51,8 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'simulator = kf_train.simulator_node:main',
-            'estimator = kf_train.estimator_node:main',
+            'simulator = kf_train.ros.simulator_node:main',
+            'estimator = kf_train.ros.estimator_node:main',
             'kf-train = kf_train.cli:main',
         ],
     },

@@ -31,8 +31,8 @@ def rows(node):
 def main() -> int:
     """Print both tables."""
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    from kf_train.estimator_node import EstimatorNode
-    from kf_train.simulator_node import SimulatorNode
+    from kf_train.ros.estimator_node import EstimatorNode
+    from kf_train.ros.simulator_node import SimulatorNode
     rclpy.init()
     try:
         for title, cls in (('simulator', SimulatorNode), ('estimator', EstimatorNode)):

@@ -1,5 +1,5 @@
 """
-Smoke tests of ``make bench`` (kf_train.bench) and of the nodes' import weight.
+Smoke tests of ``make bench`` (benchmarks/bench.py) and of the nodes' import weight.
 
 The benchmark asserts nothing about speed and neither do these tests: they check that
 ``--quick`` runs every row end to end (the live rows with real node processes) and
@@ -7,23 +7,29 @@ prints one table with its header, and that the node modules do not import scipy 
 matplotlib, which would add about 0.8 s and 60 MiB to every node's start-up.
 """
 
+import importlib.util
 import json
 import os
 import subprocess
 import sys
 
-from kf_train import bench
 import pytest
 from ros_helpers import isolated_env
 
 BENCH_TIMEOUT_S = 300.0
+# The benchmark is not part of the installed package: load it from the source tree.
+BENCH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                     'benchmarks', 'bench.py')
+_spec = importlib.util.spec_from_file_location('bench', BENCH)
+bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench)
 
 
 def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     """--quick measures rows 1 to 5 (one live rate) and prints and saves one table."""
     output = tmp_path / 'out' / 'bench.md'
     result = subprocess.run(
-        [sys.executable, '-m', 'kf_train.bench', '--quick', '--rates', '2000',
+        [sys.executable, BENCH, '--quick', '--rates', '2000',
          '--output', str(output)],
         capture_output=True, text=True, timeout=BENCH_TIMEOUT_S, env=isolated_env(domain_id))
     assert result.returncode == 0, result.stderr[-2000:]
@@ -76,7 +82,7 @@ def test_percentile_is_nearest_rank():
 def test_nodes_do_not_import_scipy_or_matplotlib():
     """Importing either node module (and so the runner and the core) pulls in neither."""
     code = ('import json, sys\n'
-            'import kf_train.estimator_node, kf_train.simulator_node\n'
+            'import kf_train.ros.estimator_node, kf_train.ros.simulator_node\n'
             'print(json.dumps(sorted(m for m in sys.modules\n'
             '                 if m.split(".")[0] in ("scipy", "matplotlib"))))\n')
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,

@@ -4,9 +4,11 @@ import os
 import subprocess
 import sys
 
-from kf_train import cli, demo, messages
-from kf_train.core.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
-from kf_train.core.simulation import TrainSimulation
+from kf_train import cli
+from kf_train.cli import demo
+from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
+from kf_train.ros import messages
+from kf_train.sim.simulation import TrainSimulation
 import numpy as np
 import pytest
 from ros_helpers import isolated_env
@@ -85,8 +87,8 @@ def test_node_command_falls_back_to_python_m(monkeypatch, tmp_path, domain_id):
     with monkeypatch.context() as patch:
         patch.setattr(sys, 'executable', str(tmp_path / 'python3'))
         assert demo.node_command('estimator') == [str(tmp_path / 'python3'), '-m',
-                                                  'kf_train.estimator_node']
-    command = [sys.executable, '-m', 'kf_train.simulator_node', '--ros-args', '-p',
+                                                  'kf_train.ros.estimator_node']
+    command = [sys.executable, '-m', 'kf_train.ros.simulator_node', '--ros-args', '-p',
                'max_samples:=-1']
     result = subprocess.run(command, capture_output=True, text=True, timeout=60,
                             env=isolated_env(domain_id))

@@ -10,13 +10,13 @@ import sys
 import time
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train import messages
+from kf_train.ros import messages
 from nav_msgs.msg import Odometry
 import pytest
 import rclpy
 from ros_helpers import isolated_env, spin_until
 
-COMMAND = [sys.executable, '-m', 'kf_train.estimator_node']
+COMMAND = [sys.executable, '-m', 'kf_train.ros.estimator_node']
 
 
 def _start(domain_id, *ros_args):

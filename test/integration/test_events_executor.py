@@ -2,7 +2,7 @@
 The runner's optional EventsExecutor mode: its shutdown path, proven under load.
 
 rclpy's EventsExecutor never returns from spin() on SIGINT and ignores SIGTERM, so
-kf_train.runner spins it with a stop future completed by its own signal handlers (see
+kf_train.ros.runner spins it with a stop future completed by its own signal handlers (see
 runner.py). These tests start the estimator in that mode in a subprocess, keep it busy
 with a stream of measurements published as fast as this process can, signal it in
 the middle of the stream, and require exit code 0, no traceback, and an exit within
@@ -17,8 +17,8 @@ import tempfile
 import time
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train import estimator_node, messages
-from kf_train.runner import executor_option
+from kf_train.ros import estimator_node, messages
+from kf_train.ros.runner import executor_option
 from nav_msgs.msg import Odometry
 import pytest
 from rclpy.node import Node
@@ -61,7 +61,7 @@ def _stop(process, signum):
 def test_exit_is_clean_under_a_stream_of_measurements(domain_id, ros_context, executor,
                                                       executor_kind, signum):
     """SIGINT or SIGTERM in the middle of a flat-out stream: exit 0, no traceback."""
-    argv = [sys.executable, '-m', 'kf_train.estimator_node', '--executor', executor_kind]
+    argv = [sys.executable, '-m', 'kf_train.ros.estimator_node', '--executor', executor_kind]
     process, stderr = _start(argv, domain_id)
     try:
         node = Node('stream', context=ros_context)
@@ -107,7 +107,7 @@ def test_exit_is_clean_under_a_stream_of_measurements(domain_id, ros_context, ex
 @pytest.mark.parametrize('signum', [signal.SIGINT, signal.SIGTERM], ids=['SIGINT', 'SIGTERM'])
 def test_events_executor_exits_when_idle(domain_id, ros_context, signum):
     """With no message at all the heartbeat still lets the signal through: exit 0."""
-    argv = [sys.executable, '-m', 'kf_train.estimator_node', '--executor', 'events',
+    argv = [sys.executable, '-m', 'kf_train.ros.estimator_node', '--executor', 'events',
             '--ros-args', '-p', 'diagnostics_period_s:=3600.0']
     process, stderr = _start(argv, domain_id)
     try:
@@ -130,8 +130,8 @@ def test_events_executor_exits_when_idle(domain_id, ros_context, signum):
 def test_done_future_ends_the_events_executor(domain_id):
     """A node's done future (the simulator's max_samples) ends the events spin: exit 0."""
     code = ('import sys\n'
-            'from kf_train.runner import run\n'
-            'from kf_train.simulator_node import SimulatorNode\n'
+            'from kf_train.ros.runner import run\n'
+            'from kf_train.ros.simulator_node import SimulatorNode\n'
             'sys.exit(run(SimulatorNode, ["simulator", "--ros-args", "-p", '
             '"max_samples:=30", "-p", "rate_hz:=300.0"], executor="events"))\n')
     process, stderr = _start([sys.executable, '-c', code], domain_id)

@@ -10,11 +10,11 @@ import os
 import statistics
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train import messages
-from kf_train.core.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
-from kf_train.demo import Probe, settings_from_parameters
-from kf_train.estimator_node import EstimatorNode
-from kf_train.simulator_node import SimulatorNode
+from kf_train.cli.demo import Probe, settings_from_parameters
+from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
+from kf_train.ros import messages
+from kf_train.ros.estimator_node import EstimatorNode
+from kf_train.ros.simulator_node import SimulatorNode
 import numpy as np
 import pytest
 from rcl_interfaces.msg import ParameterType

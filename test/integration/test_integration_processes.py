@@ -18,8 +18,8 @@ import subprocess
 import sys
 import time
 
-from kf_train import messages
-from kf_train.demo import fetch_parameters, Probe
+from kf_train.cli.demo import fetch_parameters, Probe
+from kf_train.ros import messages
 import pytest
 from ros_helpers import isolated_env, spin_until, wait_until
 from test_integration_inprocess import check_covariance, check_pose, k_sigma
@@ -283,7 +283,7 @@ def test_demo_end_to_end(spawn, tmp_path):
     assert float(re.search(r'simulation: max \|difference\| = (\S+)', report)[1]) == 0.0
     assert (output_dir / 'report.txt').read_text() == report
     assert 'Traceback' not in demo.stderr()
-    assert 'figures: ' in demo.stderr()  # drawn, or 'not available' without kf_train.plotting
+    assert 'figures: ' in demo.stderr()  # drawn, or 'not available' without kf_train.cli.plotting
     with open(output_dir / 'series.csv') as stream:
         rows = list(csv.DictReader(stream))
     assert len(rows) == 100

@@ -11,11 +11,11 @@ exit 2.
 
 import statistics
 
-from kf_train import messages
-from kf_train.core.estimator import (
+from kf_train.estimator.estimator import (
     EstimatorSettings, LIVE_PRESETS, Rejected, resolve_preset, TrainEstimator)
-from kf_train.core.filters import FILTER_KINDS
-from kf_train.estimator_node import EstimatorNode
+from kf_train.filters.family import FILTER_KINDS
+from kf_train.ros import messages
+from kf_train.ros.estimator_node import EstimatorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -237,4 +237,4 @@ def test_each_kind_converges_in_the_node(ros_context):
 ])
 def test_invalid_filter_parameter_at_startup(domain_id, assignment, words):
     """An invalid filter value at start-up: one line naming it, exit 2, no traceback."""
-    assert_startup_refused(domain_id, 'kf_train.estimator_node', assignment, words)
+    assert_startup_refused(domain_id, 'kf_train.ros.estimator_node', assignment, words)

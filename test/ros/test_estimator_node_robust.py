@@ -11,11 +11,11 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
-from kf_train import messages
-from kf_train.core.estimator import (
+from kf_train.estimator.estimator import (
     EstimateStep, EstimatorSettings, NS_PER_S, Rejected, REJECTION_REASONS, RESET_REASONS,
     TrainEstimator)
-from kf_train.estimator_node import EstimatorNode
+from kf_train.ros import messages
+from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest

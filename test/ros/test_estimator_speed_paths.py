@@ -12,9 +12,9 @@ The estimator's fast paths equal the plain ones.
 
 import math
 
-from kf_train import messages
-from kf_train.core.estimator import EstimatorSettings, Rejected, TrainEstimator
-from kf_train.estimator_node import EstimatorNode
+from kf_train.estimator.estimator import EstimatorSettings, Rejected, TrainEstimator
+from kf_train.ros import messages
+from kf_train.ros.estimator_node import EstimatorNode
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
@@ -226,4 +226,4 @@ def test_node_publishes_what_the_core_computes_after_a_frame_change(ros_context)
 ])
 def test_invalid_qos_parameter_at_startup(domain_id, assignment, words):
     """A bad QoS parameter: one line naming it, exit 2, no traceback."""
-    assert_startup_refused(domain_id, 'kf_train.estimator_node', assignment, words)
+    assert_startup_refused(domain_id, 'kf_train.ros.estimator_node', assignment, words)

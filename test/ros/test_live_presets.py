@@ -2,7 +2,7 @@
 Presets on the live nodes: the simulator's scenarios, the estimator's presets, controls.
 
 Core tests (no ROS) hold the estimator's preset and control handling against literal
-transcriptions of the seeds' MATLAB loops and against kf_train.core.series; node
+transcriptions of the seeds' MATLAB loops and against kf_train.batch.series; node
 tests run the nodes in-process, each test on its own Context and ROS domain, with
 bounded waits only. Statistical bounds come from a stated false-alarm probability.
 """
@@ -11,20 +11,20 @@ import dataclasses
 import statistics
 
 from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped, TwistStamped
-from kf_train import messages
-from kf_train.core import estimator as estimator_module
-from kf_train.core.chi2 import chi2_mean_bounds, chi2_quantile
-from kf_train.core.estimator import (
+from kf_train.batch.series import run_series
+from kf_train.estimator import estimator as estimator_module
+from kf_train.estimator.estimator import (
     CONTROL_REJECTION_REASONS, EstimatorSettings, NS_PER_S, preset_defaults, Rejected,
     resolve_preset, TrainEstimator)
-from kf_train.core.presets import load_preset
-from kf_train.core.scenario_streams import make_stream, SCENARIOS
-from kf_train.core.scenarios import (
+from kf_train.filters.chi2 import chi2_mean_bounds, chi2_quantile
+from kf_train.presets.loader import load_preset
+from kf_train.ros import messages
+from kf_train.ros.estimator_node import DEFAULTS, EstimatorNode
+from kf_train.ros.runner import StartupError
+from kf_train.ros.simulator_node import SimulatorNode
+from kf_train.sim.scenario_streams import make_stream, SCENARIOS
+from kf_train.sim.scenarios import (
     car_scenario, robot_position_m, scenario_for_preset, train_scenario)
-from kf_train.core.series import run_series
-from kf_train.estimator_node import DEFAULTS, EstimatorNode
-from kf_train.runner import StartupError
-from kf_train.simulator_node import SimulatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
@@ -835,8 +835,8 @@ def test_preset_and_scenario_parameters(ros_context):
 
 
 @pytest.mark.parametrize('module, assignment, words', [
-    ('kf_train.estimator_node', 'preset:=range-bearing', ['preset', 'range-bearing']),
-    ('kf_train.simulator_node', 'scenario:=plane', ['scenario', 'train, car']),
+    ('kf_train.ros.estimator_node', 'preset:=range-bearing', ['preset', 'range-bearing']),
+    ('kf_train.ros.simulator_node', 'scenario:=plane', ['scenario', 'train, car']),
 ])
 def test_invalid_preset_or_scenario_at_startup(domain_id, module, assignment, words):
     """An unusable preset or scenario: one line naming it, exit code 2, no traceback."""

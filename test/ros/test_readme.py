@@ -3,8 +3,8 @@
 import os
 import re
 
-from kf_train.estimator_node import EstimatorNode
-from kf_train.simulator_node import SimulatorNode
+from kf_train.ros.estimator_node import EstimatorNode
+from kf_train.ros.simulator_node import SimulatorNode
 import pytest
 
 README = os.path.join(os.path.dirname(__file__), '..', '..', 'README.md')

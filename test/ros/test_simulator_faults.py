@@ -6,11 +6,11 @@ own fault tests are in test/unit/test_faults.py.
 """
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.core.estimator import Rejected, TrainEstimator
-from kf_train.core.faults import FaultSettings
-from kf_train.estimator_node import EstimatorNode
-from kf_train.messages import from_measurement_msg, stamp_to_ns
-from kf_train.simulator_node import SimulatorNode
+from kf_train.estimator.estimator import Rejected, TrainEstimator
+from kf_train.ros.estimator_node import EstimatorNode
+from kf_train.ros.messages import from_measurement_msg, stamp_to_ns
+from kf_train.ros.simulator_node import SimulatorNode
+from kf_train.sim.faults import FaultSettings
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest

@@ -19,9 +19,9 @@ lies outside its bounds for 1% of seeds by construction.
 
 import dataclasses
 
-from kf_train.core.chi2 import chi2_mean_bounds
-from kf_train.core.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
-from kf_train.core.models import constant_velocity_F, WhiteNoiseAcceleration
+from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
+from kf_train.filters.chi2 import chi2_mean_bounds
+from kf_train.filters.models import constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 

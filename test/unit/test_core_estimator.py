@@ -1,8 +1,8 @@
-"""Tests of kf_train.core.estimator: the stamped train estimator and its settings."""
+"""Tests of kf_train.estimator.estimator: the stamped train estimator and its settings."""
 
-from kf_train.core.estimator import (
+from kf_train.estimator.estimator import (
     covariance_from_list, EstimatorSettings, NS_PER_S, seconds_to_ns, TrainEstimator)
-from kf_train.core.models import constant_velocity_F, WhiteNoiseAcceleration
+from kf_train.filters.models import constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 

@@ -1,9 +1,9 @@
-"""Tests of kf_train.core.kalman against filterpy, seed 000 and closed-form solutions."""
+"""Tests of kf_train.filters.kalman against filterpy, seed 000 and closed-form solutions."""
 
 import filterpy.kalman
-from kf_train.core.estimator import EstimatorSettings, TrainEstimator
-from kf_train.core.kalman import KalmanFilter, predict, update
-from kf_train.core.models import constant_velocity_F, PerStepNoise, WhiteNoiseAcceleration
+from kf_train.estimator.estimator import EstimatorSettings, TrainEstimator
+from kf_train.filters.kalman import KalmanFilter, predict, update
+from kf_train.filters.models import constant_velocity_F, PerStepNoise, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 

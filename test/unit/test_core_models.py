@@ -1,9 +1,9 @@
-"""Tests of kf_train.core.models: transition matrix and the two process-noise models."""
+"""Tests of kf_train.filters.models: transition matrix and the two process-noise models."""
 
 from fractions import Fraction
 import math
 
-from kf_train.core.models import (
+from kf_train.filters.models import (
     constant_velocity_F, ConstantVelocityModel, PerStepNoise, POSITION_H,
     WhiteNoiseAcceleration)
 import numpy as np

@@ -1,9 +1,9 @@
-"""Tests of kf_train.core.simulation and kf_train.core.baselines."""
+"""Tests of kf_train.sim.simulation and kf_train.sim.baselines."""
 
 import math
 
-from kf_train.core.baselines import extrapolate, raw_difference_velocity, running_average
-from kf_train.core.simulation import TrainSimulation
+from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
+from kf_train.sim.simulation import TrainSimulation
 import numpy as np
 import pytest
 

@@ -1,13 +1,13 @@
-"""Tests of kf_train.core.ekf: the range-bearing measurement, the wrap, and the EKF."""
+"""Tests of kf_train.filters.ekf: the range-bearing measurement, the wrap, and the EKF."""
 
 import math
 
 from filterpy.kalman import ExtendedKalmanFilter as FilterpyEKF
-from kf_train.core.ekf import (
+from kf_train.batch.series import run_series, SeriesError
+from kf_train.filters.ekf import (
     ekf_update, ExtendedKalmanFilter, FunctionMeasurement, RangeBearing, wrap_angle)
-from kf_train.core.presets import load_preset
-from kf_train.core.scenarios import range_bearing_scenario
-from kf_train.core.series import run_series, SeriesError
+from kf_train.presets.loader import load_preset
+from kf_train.sim.scenarios import range_bearing_scenario
 import numpy as np
 import pytest
 
@@ -169,7 +169,7 @@ def test_series_error_names_the_row():
 
 def test_function_measurement_is_a_linear_ekf():
     """With h(x) = H x the EKF update equals the linear Kalman update."""
-    from kf_train.core.kalman import update
+    from kf_train.filters.kalman import update
     H = np.array([[1.0, 0.5]])
     m = FunctionMeasurement(lambda x: H @ x, lambda x: H, ['position'])
     x, P, R = np.array([1.0, 2.0]), np.array([[2.0, 0.3], [0.3, 1.0]]), np.array([[0.5]])

@@ -1,12 +1,12 @@
-"""Tests of kf_train.core.fast: the closed-form 2-state filter against the generic path."""
+"""Tests of kf_train.filters.fast: the closed-form 2-state filter against the generic path."""
 
 from fractions import Fraction
 import math
 
 from hypothesis import given, settings, strategies as st
-from kf_train.core import kalman
-from kf_train.core.fast import FastTrainFilter, per_step_noise_terms, white_noise_terms
-from kf_train.core.models import (
+from kf_train.filters import kalman
+from kf_train.filters.fast import FastTrainFilter, per_step_noise_terms, white_noise_terms
+from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, LinearModel, PerStepNoise, POSITION_H,
     WhiteNoiseAcceleration)
 import numpy as np

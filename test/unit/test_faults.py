@@ -8,10 +8,10 @@ versions are in test/ros/test_simulator_faults.py.
 import dataclasses
 import math
 
-from kf_train.core.chi2 import chi2_quantile
-from kf_train.core.estimator import EstimatorSettings, NS_PER_S, Rejected, TrainEstimator
-from kf_train.core.faults import Delivery, FaultInjector, FaultSettings
-from kf_train.core.simulation import TrainSimulation
+from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, Rejected, TrainEstimator
+from kf_train.filters.chi2 import chi2_quantile
+from kf_train.sim.faults import Delivery, FaultInjector, FaultSettings
+from kf_train.sim.simulation import TrainSimulation
 import numpy as np
 import pytest
 

@@ -1,14 +1,14 @@
-"""Tests of kf_train.core.filters: one interface for KF, EKF, UKF and PF, and replay --filter."""
+"""Tests of kf_train.filters.family: one interface for KF, EKF, UKF and PF, and replay --filter."""
 
 import os
 
-from kf_train.core.filters import (
+from kf_train.batch.series import run_filter_series, run_series, SeriesError, time_steps_s
+from kf_train.cli.replay import main as replay_main
+from kf_train.filters.family import (
     FILTER_KINDS, FilterOptions, gaussian_model, GaussianFilter, make_filter)
-from kf_train.core.kalman import UpdateResult
-from kf_train.core.presets import load_preset, PRESET_NAMES
-from kf_train.core.scenarios import scenario_for_preset
-from kf_train.core.series import run_filter_series, run_series, SeriesError, time_steps_s
-from kf_train.replay import main as replay_main
+from kf_train.filters.kalman import UpdateResult
+from kf_train.presets.loader import load_preset, PRESET_NAMES
+from kf_train.sim.scenarios import scenario_for_preset
 import numpy as np
 import pytest
 

@@ -1,11 +1,11 @@
-"""Tests of kf_train.core.fleet: N filters at once equal N filters one by one."""
+"""Tests of kf_train.batch.fleet: N filters at once equal N filters one by one."""
 
 import math
 
-from kf_train.core import kalman
-from kf_train.core.fast import FastTrainFilter, per_step_noise_terms
-from kf_train.core.fleet import _per_step_noise_arrays, TrainFleet
-from kf_train.core.models import (
+from kf_train.batch.fleet import _per_step_noise_arrays, TrainFleet
+from kf_train.filters import kalman
+from kf_train.filters.fast import FastTrainFilter, per_step_noise_terms
+from kf_train.filters.models import (
     constant_velocity_F, PerStepNoise, POSITION_H, WhiteNoiseAcceleration)
 import numpy as np
 import pytest

@@ -1,12 +1,12 @@
-"""Tests of kf_train.core.particle: the bootstrap particle filter."""
+"""Tests of kf_train.filters.particle: the bootstrap particle filter."""
 
 import math
 
-from kf_train.core.particle import (
+from kf_train.batch.series import run_series, time_steps_s
+from kf_train.filters.particle import (
     log_normalise, ParticleFilter, psd_factor, systematic_resample)
-from kf_train.core.presets import load_preset, preset_from_mapping
-from kf_train.core.scenarios import scenario_for_preset
-from kf_train.core.series import run_series, time_steps_s
+from kf_train.presets.loader import load_preset, preset_from_mapping
+from kf_train.sim.scenarios import scenario_for_preset
 import numpy as np
 import pytest
 from scipy import stats

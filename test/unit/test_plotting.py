@@ -1,17 +1,17 @@
-"""Tests of kf_train.plotting: the figures are built right and written as real PNGs."""
+"""Tests of kf_train.cli.plotting: the figures are built right and written as real PNGs."""
 
 import os
 import subprocess
 import sys
 
-from kf_train.core import baselines
-from kf_train.core.presets import load_preset, PRESET_NAMES
-from kf_train.core.scenarios import train_scenario
-from kf_train.core.series import run_series
-from kf_train.plotting import (
+from kf_train.batch.series import run_series
+from kf_train.cli.plotting import (
     build_seed000_figures, main, measured_states, preset_figure, scenario_figures,
     seed000_figures)
-from kf_train.replay import main as replay_main
+from kf_train.cli.replay import main as replay_main
+from kf_train.presets.loader import load_preset, PRESET_NAMES
+from kf_train.sim import baselines
+from kf_train.sim.scenarios import train_scenario
 from matplotlib import image
 import numpy as np
 import pytest
@@ -91,7 +91,7 @@ def test_seed000_figures_reject_bad_shapes():
 @pytest.mark.parametrize('name', PRESET_NAMES)
 def test_preset_figure_has_one_panel_per_state(name):
     """Each state gets a panel with truth, estimate and its ±2σ band."""
-    from kf_train.core.scenarios import scenario_for_preset
+    from kf_train.sim.scenarios import scenario_for_preset
     preset = load_preset(name)
     s = scenario_for_preset(name, 0)
     r = run_series(preset, s.t_s, s.z, s.u)
@@ -151,7 +151,7 @@ def test_plot_a_replay_output(tmp_path, capsys):
 
 def test_plotting_never_imports_pyplot():
     """The figures are drawn on an Agg canvas without pyplot (no display, no globals)."""
-    code = ('import sys; from kf_train import plotting; '
+    code = ('import sys; from kf_train.cli import plotting; '
             'plotting.new_figure(); '
             "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot imported'")
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,

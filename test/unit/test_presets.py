@@ -1,5 +1,5 @@
 """
-Tests of kf_train.core.presets: every preset against its seed, filterpy and its YAML.
+Tests of kf_train.presets.loader: every preset against its seed, filterpy and its YAML.
 
 Each ``_seedNNN`` function below is a literal transcription of the seed's MATLAB loop
 (same matrices, same initial values, same order, same covariance formula), kept in
@@ -11,12 +11,12 @@ import os
 import textwrap
 
 from filterpy.kalman import KalmanFilter as FilterpyKF
-from kf_train.core.presets import (
+from kf_train.batch.series import run_linear_series, run_series
+from kf_train.cli.replay import main as replay_main, read_table
+from kf_train.presets.loader import (
     available_presets, ControlMatrix, DtExpression, Dynamics, load_preset,
     load_preset_file, per_step_weights, preset_from_mapping, PRESET_NAMES)
-from kf_train.core.scenarios import robot_scenario
-from kf_train.core.series import run_linear_series, run_series
-from kf_train.replay import main as replay_main, read_table
+from kf_train.sim.scenarios import robot_scenario
 import numpy as np
 import pytest
 from scipy import integrate, stats

@@ -6,12 +6,12 @@ import subprocess
 import sys
 
 from kf_train import cli
-from kf_train.core.presets import load_preset, PRESET_NAMES
-from kf_train.core.scenarios import scenario_for_preset
-from kf_train.core.series import (
+from kf_train.batch.series import (
     affine_recursion, run_linear_series, run_series, time_steps_s)
-from kf_train.core.smoother import smooth_series
-from kf_train.replay import main, read_table, required_columns
+from kf_train.batch.smoother import smooth_series
+from kf_train.cli.replay import main, read_table, required_columns
+from kf_train.presets.loader import load_preset, PRESET_NAMES
+from kf_train.sim.scenarios import scenario_for_preset
 import numpy as np
 import pytest
 
@@ -82,7 +82,7 @@ def test_fast_path_equals_generic_path(name, jitter):
 
 def test_fast_path_without_process_noise_and_a_singular_prior():
     """Q = 0 with a singular P0 (no information form) still equals the generic path."""
-    from kf_train.core.presets import preset_from_mapping
+    from kf_train.presets.loader import preset_from_mapping
     preset = preset_from_mapping({
         'name': 'pinned', 'motion': 'constant_velocity', 'states': ['position', 'velocity'],
         'measurements': ['position'], 'R': [0.5], 'process_noise': {'per_step': [0, 0]},

@@ -8,12 +8,12 @@ time order and checks the bank (the API and ``kf-train replay``) against
 
 import os
 
-from kf_train.core import series
-from kf_train.core.filters import FilterOptions, make_filter
-from kf_train.core.presets import load_preset, PRESET_NAMES
-from kf_train.core.series import group_rows, run_bank, run_filter_series, run_series
-from kf_train.core.smoother import smooth_series
-from kf_train.replay import main, read_table
+from kf_train.batch import series
+from kf_train.batch.series import group_rows, run_bank, run_filter_series, run_series
+from kf_train.batch.smoother import smooth_series
+from kf_train.cli.replay import main, read_table
+from kf_train.filters.family import FilterOptions, make_filter
+from kf_train.presets.loader import load_preset, PRESET_NAMES
 import numpy as np
 import pytest
 

@@ -1,5 +1,5 @@
 """
-The replay's bulk text paths (kf_train.core.csvio) equal the plain ones exactly.
+The replay's bulk text paths (kf_train.io.csvio) equal the plain ones exactly.
 
 The writer must give Python's ``repr`` for every double, the reader ``float()`` for
 every plain decimal, and the replay's output must be the same bytes whichever reader
@@ -11,10 +11,10 @@ import os
 import struct
 
 from hypothesis import given, settings, strategies as st
-from kf_train.core import csvio
-from kf_train.core.presets import load_preset
-from kf_train.core.series import run_series
-from kf_train.replay import main, read_table
+from kf_train.batch.series import run_series
+from kf_train.cli.replay import main, read_table
+from kf_train.io import csvio
+from kf_train.presets.loader import load_preset
 import numpy as np
 import pytest
 

@@ -1,12 +1,12 @@
-"""Tests of the estimator's input contract, time handling and gating (kf_train.core.estimator)."""
+"""Tests of the estimator's input contract, time handling and gating (kf_train.estimator)."""
 
 import dataclasses
 import math
 
-from kf_train.core.chi2 import chi2_quantile
-from kf_train.core.estimator import (
+from kf_train.estimator.estimator import (
     EstimatorSettings, NS_PER_S, Rejected, REJECTION_REASONS, RESET_REASONS, TrainEstimator)
-from kf_train.core.models import constant_velocity_F, WhiteNoiseAcceleration
+from kf_train.filters.chi2 import chi2_quantile
+from kf_train.filters.models import constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 

@@ -1,10 +1,10 @@
-"""Tests of kf_train.core.smoother: RTS against filterpy and against the batch solution."""
+"""Tests of kf_train.batch.smoother: RTS against filterpy and against the batch solution."""
 
 from filterpy.kalman import rts_smoother
-from kf_train.core.presets import load_preset, preset_from_mapping
-from kf_train.core.scenarios import range_bearing_scenario, robot_scenario
-from kf_train.core.series import run_linear_series, run_series
-from kf_train.core.smoother import rts_smooth, smooth_series
+from kf_train.batch.series import run_linear_series, run_series
+from kf_train.batch.smoother import rts_smooth, smooth_series
+from kf_train.presets.loader import load_preset, preset_from_mapping
+from kf_train.sim.scenarios import range_bearing_scenario, robot_scenario
 import numpy as np
 import pytest
 
@@ -158,7 +158,7 @@ def test_robot_smoother_equals_the_batch_solution():
 
 def test_vectorised_and_row_by_row_passes_agree(monkeypatch):
     """The affine-recursion pass equals the plain backward loop."""
-    import kf_train.core.smoother as smoother
+    import kf_train.batch.smoother as smoother
     preset = load_preset('car')
     rng = np.random.default_rng(6)
     t = np.cumsum(rng.uniform(0.05, 0.2, 500))
