@@ -45,8 +45,9 @@ def new_figure(rows: int = 1, cols: int = 1, size=(8.0, 5.0)):
     try:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
-    except ImportError:  # pragma: no cover - matplotlib is a dev requirement
-        raise RuntimeError('kf-train plot needs matplotlib: pip install matplotlib') from None
+    except ImportError:  # pragma: no cover - the [plot] extra
+        raise RuntimeError(
+            "kf-train plot needs matplotlib: pip install 'kf_train[plot]'") from None
     figure = Figure(figsize=size, layout='constrained')
     FigureCanvasAgg(figure)
     axes = figure.subplots(rows, cols, squeeze=False)

@@ -7,7 +7,7 @@ from kf_train.ros.estimator_node import EstimatorNode
 from kf_train.ros.simulator_node import SimulatorNode
 import pytest
 
-README = os.path.join(os.path.dirname(__file__), '..', 'README.md')
+README = os.path.join(os.path.dirname(__file__), '..', '..', 'README.md')
 INTERNAL = {'use_sim_time', 'start_type_description_service'}
 
 

@@ -28,7 +28,7 @@ from ros_helpers import spin_until
 from rosgraph_msgs.msg import Clock
 import yaml
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CONFIG = os.path.join(REPO, 'config', 'kf_train.yaml')
 TIMEOUT_S = 30.0
 FALSE_ALARM = 1e-6

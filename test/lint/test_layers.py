@@ -21,8 +21,8 @@ import pytest
 
 pytestmark = pytest.mark.linter
 
-PACKAGE_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                           'kf_train')
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+PACKAGE_DIR = os.path.join(REPO, 'kf_train')
 FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
           'ros': 4, 'cli': 5}
 COMPATIBILITY = 'core'

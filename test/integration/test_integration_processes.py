@@ -25,7 +25,7 @@ from ros_helpers import isolated_env, spin_until, wait_until
 from test_integration_inprocess import check_covariance, check_pose, k_sigma
 import yaml
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CONFIG = os.path.join(REPO, 'config', 'kf_train.yaml')
 VENV_BIN = os.path.dirname(sys.executable)
 COLCON_WS = os.environ.get('COLCON_WS', '/tmp/kf_train_colcon_ws')
