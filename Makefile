@@ -8,6 +8,8 @@
 #                     holding a plain `pip install '.[plot]'` (what core users get)
 #   make lint         only the ament_flake8 / ament_pep257 tests
 #   make colcon       colcon build in a throwaway workspace ($(COLCON_WS))
+#   make ros2cli      install the `ros2` CLI and launch wheels from $(ROS2CLI_WHEELS)
+#                     into $(VENV) (when that folder exists, `make test` does it first)
 #   make constraints  refresh constraints.txt from a fresh resolve (see README)
 #   make demo / bench / clean / distclean
 #
@@ -37,8 +39,19 @@ PYTEST_ARGS ?=
 
 REPO_ROOT := $(abspath $(dir $(lastword $(MAKEFILE_LIST))))
 
-.PHONY: setup venv demo test test-core test-noros lint colcon constraints bench clean \
-	distclean
+# Wheels of the Jazzy `ros2` CLI and launch (not on the package index), beside the
+# clone; see their README. Installed --no-deps (launch_ros asks for a name the index
+# does not have); their pure-Python dependencies are in requirements-ros2cli.txt.
+ROS2CLI_WHEELS ?= $(abspath $(REPO_ROOT)/../shared/ros2cli-wheels)
+ROS2CLI_PACKAGES = rosidl_runtime_py ros2cli ros2action ros2component ros2doctor \
+  ros2interface ros2lifecycle ros2multicast ros2node ros2param ros2pkg ros2run ros2service \
+  ros2topic launch launch_xml launch_yaml launch_ros ros2launch ament_copyright \
+  ros-composition-interfaces
+# `make test` installs them first when the folder is there.
+TEST_PREREQUISITES = colcon $(if $(wildcard $(ROS2CLI_WHEELS)/ros2cli-*.whl),ros2cli)
+
+.PHONY: setup venv demo test test-core test-noros lint colcon ros2cli constraints bench \
+	clean distclean
 
 REQUIREMENTS := requirements-ros.txt requirements-test.txt requirements-dev.txt
 
@@ -53,12 +66,22 @@ $(VENV)/.stamp: $(REQUIREMENTS) $(CONSTRAINTS) setup.py package.xml
 
 setup venv: $(VENV)/.stamp
 
+$(VENV)/.ros2cli-stamp: $(VENV)/.stamp requirements-ros2cli.txt $(wildcard $(ROS2CLI_WHEELS)/*.whl)
+	@test -d $(ROS2CLI_WHEELS) || { echo "no $(ROS2CLI_WHEELS)" >&2; exit 1; }
+	$(PIP) install $(PIP_FLAGS) -r requirements-ros2cli.txt
+	$(PIP) install $(PIP_FLAGS) --no-deps --no-index --find-links $(ROS2CLI_WHEELS) \
+	  $(ROS2CLI_PACKAGES)
+	@test -x $(VENV)/bin/ros2 || { echo "ros2 missing from $(VENV)/bin" >&2; exit 1; }
+	@touch $@
+
+ros2cli: $(VENV)/.ros2cli-stamp
+
 demo: setup
 	$(VENV)/bin/kf-train demo
 
 # ROS_DOMAIN_ID must stay in 0..101 (Fast DDS port math); 1..100 here. Tests
 # may override it per test.
-test: colcon
+test: $(TEST_PREREQUISITES)
 	export COLCON_WS=$(COLCON_WS); \
 	export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST; \
 	export ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-$$(( $$$$ % 100 + 1 ))}; \

@@ -21,6 +21,9 @@ data_files = [
 _config = _files('config/*')
 if _config:
     data_files.append(('share/' + package_name + '/config', _config))
+_launch = _files('launch/*.launch.py')
+if _launch:
+    data_files.append(('share/' + package_name + '/launch', _launch))
 _presets = _files('config/presets/*.yaml')
 if _presets:
     data_files.append(('share/' + package_name + '/config/presets', _presets))

@@ -44,6 +44,7 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
     """
     if executor != 'single_threaded':
         return _run_other_executor(make_node, args, executor)
+    sigint = _InterruptOnce()
     rclpy.init(args=args)
     node = None
     try:
@@ -76,6 +77,46 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        sigint.restore()
+
+
+class _InterruptOnce:
+    """
+    A node process's SIGINT handler: the first raises KeyboardInterrupt, later ones do not.
+
+    A Ctrl-C in a terminal running ``ros2 launch`` reaches launch and its nodes (one
+    process group), and launch then sends each node a SIGINT of its own: without this,
+    that second one lands in the clean-up and prints a KeyboardInterrupt traceback
+    (exit -2). rclpy's handler, installed by ``rclpy.init`` after this one, still shuts
+    the context down first and then calls it. Off the main thread, where handlers
+    cannot be set, it changes nothing.
+    """
+
+    def __init__(self):
+        """Install the handler (main thread only), remembering the one it replaces."""
+        self.interrupted = False
+        self.previous = None
+        if threading.current_thread() is threading.main_thread():
+            previous = signal.signal(signal.SIGINT, self._on_sigint)
+            # None: a handler set outside Python; Python's own is the best stand-in.
+            self.previous = signal.default_int_handler if previous is None else previous
+
+    def _on_sigint(self, signum, frame) -> None:
+        if not self.interrupted:
+            self.interrupted = True
+            raise KeyboardInterrupt
+
+    def restore(self) -> None:
+        """
+        Put the previous handler back, unless a SIGINT came: then ignore SIGINT.
+
+        Ignored to the end of the process, because while Python finalises it resets a
+        handler of its own to the default, fatal action, and one more SIGINT would then
+        end the process with -2 after it had shut down cleanly.
+        """
+        if self.previous is not None:
+            signal.signal(signal.SIGINT,
+                          signal.SIG_IGN if self.interrupted else self.previous)
 
 
 # rclpy's texts (Jazzy), e.g. "Invalid parameter value (-1.0) for parameter. Reason:
