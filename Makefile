@@ -5,7 +5,7 @@
 #   make test         full pytest suite, DDS traffic kept on localhost
 #   make test-core    only test/unit: the tests that need neither ROS nor processes
 #   make test-noros   test/unit in $(CORE_VENV), a venv with no ROS wheel at all,
-#                     holding a plain `pip install '.[plot]'` (what core users get)
+#                     holding a plain `pip install '.[plot,bag]'` (what core users get)
 #   make lint         only the ament_flake8 / ament_pep257 tests
 #   make colcon       colcon build in a throwaway workspace ($(COLCON_WS))
 #   make ros2cli      install the `ros2` CLI and launch wheels from $(ROS2CLI_WHEELS)
@@ -28,9 +28,9 @@ PIP = $(PY) -m pip
 CONSTRAINTS := constraints.txt
 PIP_FLAGS := -q --disable-pip-version-check -c $(CONSTRAINTS)
 # The optional features the test suite exercises (setup.py extras_require).
-EXTRAS := plot
+EXTRAS := plot,bag
 # Every extra, for the constraints resolve.
-ALL_EXTRAS := plot
+ALL_EXTRAS := plot,bag
 PYTHON3 ?= python3
 # Inside the clone (build/ is ignored by git and the linters), so parallel clones
 # never share a workspace.

@@ -41,6 +41,8 @@ setup(
     extras_require={
         # kf-train plot and the demo's figures
         'plot': ['matplotlib'],
+        # rosbag2 (MCAP, sqlite3) in and out: kf_train.io.bagio
+        'bag': ['rosbags'],
     },
     zip_safe=True,
     maintainer='kf_train maintainers',

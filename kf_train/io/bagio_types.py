@@ -1,0 +1,24 @@
+"""The standard message types kf_train's bags hold, and the rosbags typestore for them."""
+
+from rosbags.typesys import get_typestore, Stores
+
+POSE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+ODOMETRY = 'nav_msgs/msg/Odometry'
+ACCEL = 'geometry_msgs/msg/AccelStamped'
+TWIST = 'geometry_msgs/msg/TwistStamped'
+VECTOR3 = 'geometry_msgs/msg/Vector3Stamped'
+DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
+
+MEASUREMENT_TYPES = {('position',): POSE, ('position', 'velocity'): ODOMETRY}
+"""A preset's measurement names -> the message type of its ``measurement`` topic."""
+CONTROL_TYPES = {'acceleration': ACCEL, 'velocity': TWIST}
+"""A preset's control name -> the message type of its ``control`` topic."""
+
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+"""rosbags' definitions of the ROS 2 Jazzy standard messages."""
+
+UNESTIMATED_VARIANCE = 1e9
+"""Variance of the dimensions the 1-D model does not estimate (as kf_train/messages.py)."""
+
+DIAGNOSTIC_LEVELS = {'OK': 0, 'WARN': 1, 'ERROR': 2, 'STALE': 3}
+"""diagnostic_msgs/DiagnosticStatus levels by name (as kf_train/messages.py)."""
