@@ -68,7 +68,7 @@ Other interfaces:
   freedom).
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``
   on the steady clock): one status ``<node name>: filter``, level OK or WARN, with the
-  preset, the filter (with ``ukf_regularisations``, or the particle filter's
+  preset, the filter (with ``ukf_regularisations``, or the particle filters'
   ``pf_ess`` and ``pf_resample_count``), input rate, last measurement age, counts
   (received, fused, rejected.<reason>, resets.<reason>; with a control input
   controls_received, controls.accepted / late / provisional,
@@ -87,12 +87,15 @@ Other interfaces:
 
 Filters (parameter ``filter``, fixed at start-up): ``kf`` (default, the exact linear
 filter), ``ekf`` (identical on these linear presets), ``ukf`` (Merwe sigma points,
-``ukf_alpha``/``ukf_beta``/``ukf_kappa``) or ``pf`` (bootstrap particle filter,
-``pf_particles``/``pf_seed``/``pf_resample_threshold``; reproducible bit for bit, an
-out-of-sequence replay included). Every one runs with the same input contract, gate
-(its own NIS), out-of-sequence replay, controls, resets and diagnostics. The particle
+``ukf_alpha``/``ukf_beta``/``ukf_kappa``), ``pf`` (regularised particle filter: the
+first update drawn from the measurement, progressive correction, a kernel move with a
+Metropolis-Hastings step after resampling) or ``bootstrap-pf`` (the plain bootstrap
+filter, for teaching); both particle filters take
+``pf_particles``/``pf_seed``/``pf_resample_threshold`` and are reproducible bit for bit,
+an out-of-sequence replay included. Every one runs with the same input contract, gate
+(its own NIS), out-of-sequence replay, controls, resets and diagnostics. The bootstrap
 filter needs ``process_noise_density`` > 0 on the train (Q = 0 otherwise: resampled
-particles never spread again).
+particles never spread again); ``pf`` does not (its move spreads them).
 
 Every parameter can be changed at runtime; a change is validated as a whole and
 refused with a reason (the old values stay), except ``preset``, ``filter`` and the
@@ -116,7 +119,7 @@ from kf_train.core.estimator import (
     PF_PARTICLES_RANGE, PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, Rejected,
     RESTART_AFTER_STALE_RANGE, TrainEstimator, UKF_ALPHA_RANGE, UKF_BETA_RANGE,
     UKF_KAPPA_RANGE)
-from kf_train.core.filters import FILTER_KINDS
+from kf_train.core.filters import FILTER_KINDS, PARTICLE_KINDS
 from kf_train.parameters import BIG, declare
 from kf_train.runner import executor_option, run, StartupError
 from nav_msgs.msg import Odometry
@@ -286,9 +289,12 @@ class EstimatorNode(Node):
             'filter': declare(
                 self, 'filter', DEFAULTS.filter,
                 'The filter: kf (exact linear Kalman filter, default), ekf (the same on '
-                'these linear presets), ukf (unscented, ukf_alpha/beta/kappa) or pf '
-                '(bootstrap particle filter, pf_particles/pf_seed/pf_resample_threshold; '
-                'give it process_noise_density > 0, or its particles collapse).' + fixed,
+                'these linear presets), ukf (unscented, ukf_alpha/beta/kappa), pf '
+                '(regularised particle filter: first update from the measurement, '
+                'progressive correction, Metropolis-Hastings move) or bootstrap-pf (plain '
+                'bootstrap particle filter, for teaching; give it process_noise_density '
+                '> 0, or its particles collapse); both take '
+                'pf_particles/pf_seed/pf_resample_threshold.' + fixed,
                 constraints='one of: ' + ', '.join(FILTER_KINDS), read_only=True),
             'ukf_alpha': declare(
                 self, 'ukf_alpha', DEFAULTS.ukf_alpha,
@@ -641,7 +647,7 @@ class EstimatorNode(Node):
         regularisations = getattr(model, 'regularisations', None)
         if regularisations is not None:
             values.append(('ukf_regularisations', str(regularisations)))
-        if settings.filter == 'pf' and self.estimator.initialized:
+        if settings.filter in PARTICLE_KINDS and self.estimator.initialized:
             # The particles last stepped: those of the newest estimate.
             values += [('pf_ess', f'{model.filter.ess:.1f}'),
                        ('pf_resample_count', str(model.filter.resample_count))]

@@ -9,7 +9,8 @@ state and covariance, the nominal period and the horizon; a setting that is not 
 overrides the preset's value.
 
 The filter (``filter``, fixed for the estimator's life like the preset) is ``kf``
-(default), ``ekf`` (the KF on these linear presets), ``ukf`` or ``pf``: each is a pure
+(default), ``ekf`` (the KF on these linear presets), ``ukf``, ``pf`` (the regularised
+particle filter) or ``bootstrap-pf`` (the plain bootstrap filter): each is a pure
 ``predict(x, P, dt, u)``/``update(x, P, z, R)`` model, so the input contract, the χ²
 gate (on the filter's own NIS), the out-of-sequence replay, controls and resets work
 alike for all. The particle filter keeps the particles behind every kept mean, so a
@@ -108,11 +109,12 @@ import weakref
 
 from kf_train.core.chi2 import chi2_quantile
 from kf_train.core.fast import correct, white_noise_terms
-from kf_train.core.filters import DEFAULT_PARTICLES, FILTER_KINDS
+from kf_train.core.filters import DEFAULT_PARTICLES, FILTER_KINDS, PARTICLE_KINDS
 from kf_train.core.kalman import UpdateResult
 from kf_train.core.models import constant_velocity_model, LinearModel, WhiteNoiseAcceleration
 from kf_train.core.particle import DEFAULT_RESAMPLE_THRESHOLD, ParticleFilter
 from kf_train.core.presets import load_preset, load_preset_file, Preset, PRESET_NAMES
+from kf_train.core.regularised_pf import RegularisedParticleFilter
 from kf_train.core.ukf import DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA, UnscentedModel
 from kf_train.core.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
@@ -376,7 +378,8 @@ class EstimatorSettings:
     """R of a measured velocity [m²/s²] overriding the message's; 0 uses the message's."""
     filter: str = 'kf'  # noqa: A003 (the node parameter's name)
     """The filter kind (:data:`kf_train.core.filters.FILTER_KINDS`): ``kf`` (exact, the
-    default), ``ekf`` (the same on these linear presets), ``ukf`` or ``pf``."""
+    default), ``ekf`` (the same on these linear presets), ``ukf``, ``pf`` (regularised)
+    or ``bootstrap-pf``."""
     ukf_alpha: float = DEFAULT_ALPHA
     """UKF sigma-point spread α > 0."""
     ukf_beta: float = DEFAULT_BETA
@@ -584,7 +587,7 @@ class _FastTrainModel:
 
 class _ParticleModel:
     """
-    A bootstrap particle filter behind the pure ``predict(x, P, dt, u)``/``update`` interface.
+    A particle filter behind the pure ``predict(x, P, dt, u)``/``update`` interface.
 
     The estimator keeps states as (x, P) and rewinds by going back to an older pair.
     Each mean this model returns stands for its particles: their snapshot (particles,
@@ -596,7 +599,8 @@ class _ParticleModel:
     """
 
     def __init__(self, model: LinearModel, particles: int, seed: int,
-                 resample_threshold: float, states: Dict[int, object]):
+                 resample_threshold: float, states: Dict[int, object],
+                 filter_class=RegularisedParticleFilter):
         """Run ``model`` with ``particles`` particles; keep snapshots in ``states``."""
         self.base = model
         self.state_names = model.state_names
@@ -607,9 +611,9 @@ class _ParticleModel:
         self.seed = seed
         self.states = states
         n = model.dim_x
-        self.filter = ParticleFilter(model, np.zeros(n), np.zeros((n, n)),
-                                     n_particles=particles, seed=seed,
-                                     resample_threshold=resample_threshold)
+        self.filter = filter_class(model, np.zeros(n), np.zeros((n, n)),
+                                   n_particles=particles, seed=seed,
+                                   resample_threshold=resample_threshold)
 
     def _load(self, x: np.ndarray, P: np.ndarray) -> None:
         """Make the filter's particles those behind x (drawn from N(x, P) if none)."""
@@ -800,9 +804,9 @@ class TrainEstimator:
         Return the filter's pure model: the preset's, plus white-noise acceleration q if set.
 
         ``kf`` and ``ekf`` (an EKF of a linear model is the KF) use the linear model
-        itself, ``ukf`` its unscented transform, ``pf`` a :class:`_ParticleModel` on it
-        (keeping its particles in ``particle_states``). With ``fast``, the train's KF is
-        :class:`_FastTrainModel`, its closed form.
+        itself, ``ukf`` its unscented transform, ``pf`` and ``bootstrap-pf`` a
+        :class:`_ParticleModel` on it (keeping its particles in ``particle_states``).
+        With ``fast``, the train's KF is :class:`_FastTrainModel`, its closed form.
         """
         q = settings.process_noise_density
         if settings.preset == 'train':
@@ -815,10 +819,12 @@ class TrainEstimator:
         if settings.filter == 'ukf':
             return UnscentedModel.from_model(model, alpha=settings.ukf_alpha,
                                              beta=settings.ukf_beta, kappa=settings.ukf_kappa)
-        if settings.filter == 'pf':
+        if settings.filter in PARTICLE_KINDS:
             return _ParticleModel(model, settings.pf_particles, settings.pf_seed,
                                   settings.pf_resample_threshold,
-                                  {} if particle_states is None else particle_states)
+                                  {} if particle_states is None else particle_states,
+                                  RegularisedParticleFilter if settings.filter == 'pf'
+                                  else ParticleFilter)
         return model
 
     @property
