@@ -17,6 +17,9 @@ Rows (``--rows``, default all that exist):
    node (same QoS, republishes each message): the transport's own cost.
 5. Start-up: process start to first output, and peak RSS, for each node and for a
    bare rclpy node with the same publishers.
+6. The filter family on the range-bearing seed (:mod:`kf_train.bench_filters`): µs per
+   update of EKF, UKF, the regularised particle filter and the bootstrap one, each as
+   a ratio to the UKF.
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -41,7 +44,7 @@ import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
-ROWS = (1, 2, 3, 4, 5)
+ROWS = (1, 2, 3, 4, 5, 6)
 LIVE_RATES_HZ = (1000, 2000, 5000, 10000)
 Q_DENSITY = 0.5        # white-noise acceleration of the benchmark model [m²/s³]
 DT_S = 0.1
@@ -988,6 +991,12 @@ HELPERS = {'_publisher': _publisher_main, '_probe': _probe_main, '_echo': _echo_
 
 # -- main -----------------------------------------------------------------------------
 
+def row_filters(quick: bool) -> List[Row]:
+    """Measure row 6: the filter family per update (:mod:`kf_train.bench_filters`)."""
+    from kf_train.bench_filters import row_filters as measure
+    return measure(quick)
+
+
 def _parse(argv: List[str]) -> argparse.Namespace:
     """Parse the command line."""
     parser = argparse.ArgumentParser(
@@ -1037,7 +1046,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     measure = {1: lambda: row_core(args.quick), 2: lambda: row_replay(args.quick),
                3: lambda: row_fleet(args.quick),
                4: lambda: row_live(args.quick, args.rates, args.qos_depth),
-               5: lambda: row_startup(args.quick)}
+               5: lambda: row_startup(args.quick),
+               6: lambda: row_filters(args.quick)}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()
