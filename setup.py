@@ -31,7 +31,14 @@ setup(
     packages=find_packages(exclude=['test']),
     package_data={package_name: ['presets/*.yaml']},
     data_files=data_files,
-    install_requires=['setuptools', 'numpy', 'PyYAML'],
+    # What the installed package imports at run time, and nothing more. The ROS 2
+    # wheels (rclpy, the message packages) are declared in package.xml and installed
+    # from requirements-ros.txt: a ROS machine has them from its distribution.
+    install_requires=['numpy', 'PyYAML'],
+    extras_require={
+        # kf-train plot and the demo's figures
+        'plot': ['matplotlib'],
+    },
     zip_safe=True,
     maintainer='kf_train maintainers',
     maintainer_email='maintainers@kf-train.example.org',
@@ -44,8 +51,8 @@ setup(
     tests_require=['pytest'],
     entry_points={
         'console_scripts': [
-            'simulator = kf_train.simulator_node:main',
-            'estimator = kf_train.estimator_node:main',
+            'simulator = kf_train.ros.simulator_node:main',
+            'estimator = kf_train.ros.estimator_node:main',
             'kf-train = kf_train.cli:main',
         ],
     },

@@ -1,12 +1,32 @@
-"""Pytest configuration shared by the kf_train test suite."""
+"""
+Pytest configuration shared by the whole kf_train suite.
+
+It imports no ROS package, so that ``test/unit`` runs in a venv without ROS wheels. The
+suite is split by what a test needs:
+
+* ``unit/``: neither ROS nor node processes (marker ``unit``; ``make test-core``);
+* ``ros/``: rclpy nodes in this process (marker ``ros``);
+* ``integration/``: nodes in other processes, console scripts, DDS (marker ``integration``);
+* ``lint/``: ament flake8 and pep257 (marker ``linter``).
+
+The ROS fixtures (a domain and a Context per test) live in ``ros_fixtures.py``, which only
+the ``ros/`` and ``integration/`` conftests import.
+"""
 
 import os
 import sys
 
 import pytest
 
-sys.path.insert(0, os.path.dirname(__file__))
-import ros_helpers  # noqa: E402, I100
+TEST_DIR = os.path.dirname(os.path.abspath(__file__))
+# ros_helpers.py and ros_fixtures.py sit here, beside the folders that use them.
+sys.path.insert(0, TEST_DIR)
+
+LAYERS = {
+    'unit': 'needs neither ROS nor node processes (runs without ROS wheels)',
+    'ros': 'runs rclpy nodes in the test process',
+    'integration': 'runs nodes or console scripts in other processes, over DDS',
+}
 
 
 def pytest_configure(config):
@@ -15,44 +35,26 @@ def pytest_configure(config):
         'flake8: marks tests checking for flake8 compliance',
         'linter: marks tests running a code linter',
         'slow: marks tests that take long to run',
+        *(f'{name}: {text}' for name, text in LAYERS.items()),
     ):
         config.addinivalue_line('markers', marker)
 
 
+def _layer(item) -> str:
+    """Return the top folder below test/ that holds ``item``."""
+    relative = os.path.relpath(str(item.path), TEST_DIR)
+    return relative.split(os.sep, 1)[0]
+
+
 def pytest_collection_modifyitems(config, items):
     """
-    Run the linters first.
+    Mark every test with its layer, and run the linters first.
 
     flake8 forks worker processes; forking a process that still holds DDS threads from
     earlier ROS tests can deadlock the child, so the linters go before any ROS test.
     """
+    for item in items:
+        layer = _layer(item)
+        if layer in LAYERS:
+            item.add_marker(getattr(pytest.mark, layer))
     items.sort(key=lambda item: 0 if item.get_closest_marker('linter') else 1)
-
-
-@pytest.fixture
-def domain_id(monkeypatch):
-    """Give the test its own ROS domain, confined to this host."""
-    domain = ros_helpers.next_domain_id()
-    monkeypatch.setenv('ROS_DOMAIN_ID', str(domain))
-    monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    return domain
-
-
-@pytest.fixture
-def ros_context(domain_id):
-    """Yield an rclpy Context of the test's own, shut down afterwards."""
-    context = ros_helpers.make_context(domain_id)
-    yield context
-    context.try_shutdown()
-
-
-@pytest.fixture
-def executor(ros_context):
-    """Yield a SingleThreadedExecutor bound to the test's context."""
-    from rclpy.executors import SingleThreadedExecutor
-    executor = SingleThreadedExecutor(context=ros_context)
-    yield executor
-    nodes = executor.get_nodes()
-    executor.shutdown()
-    for node in nodes:
-        node.destroy_node()

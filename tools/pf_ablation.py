@@ -1,7 +1,7 @@
 """
 Print docs/filters.md's ablation of the particle filter on the range-bearing seed.
 
-Each row switches parts of :class:`kf_train.core.regularised_pf.RegularisedParticleFilter`
+Each row switches parts of :class:`kf_train.filters.regularised_pf.RegularisedParticleFilter`
 on or off (or runs the bootstrap filter), over the same seeded Monte-Carlo runs as
 ``kf-train compare`` (scenario seed r, initial estimate and filter seed derived from
 (seed, r) the same way):
@@ -14,12 +14,12 @@ import math
 import sys
 import time
 
-from kf_train.compare import anees_bounds, derived_seed, nees
-from kf_train.core.particle import ParticleFilter, psd_factor
-from kf_train.core.presets import load_preset
-from kf_train.core.regularised_pf import RegularisedParticleFilter
-from kf_train.core.scenarios import scenario_for_preset
-from kf_train.core.series import time_steps_s
+from kf_train.batch.series import time_steps_s
+from kf_train.cli.compare import anees_bounds, derived_seed, nees
+from kf_train.filters.particle import ParticleFilter, psd_factor
+from kf_train.filters.regularised_pf import RegularisedParticleFilter
+from kf_train.presets.loader import load_preset
+from kf_train.sim.scenarios import scenario_for_preset
 import numpy as np
 
 VARIANTS = (

@@ -1,11 +1,11 @@
 """kf_train's pure-Python core: numpy only, no ROS imports."""
 
-from kf_train.core.estimator import EstimateStep, EstimatorSettings, TrainEstimator
-from kf_train.core.kalman import KalmanFilter, predict, update, UpdateResult
-from kf_train.core.models import (
+from kf_train.estimator.estimator import EstimateStep, EstimatorSettings, TrainEstimator
+from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
+from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearModel,
     PerStepNoise, POSITION_H, WhiteNoiseAcceleration)
-from kf_train.core.simulation import TrainSample, TrainSeries, TrainSimulation
+from kf_train.sim.simulation import TrainSample, TrainSeries, TrainSimulation
 
 __all__ = [
     'ConstantVelocityModel', 'EstimateStep', 'LinearModel', 'EstimatorSettings', 'KalmanFilter',

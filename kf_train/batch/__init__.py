@@ -1,0 +1,1 @@
+"""Floor 3, batch paths: vectorised series, banks, fleets and the RTS smoother."""

@@ -1,0 +1,636 @@
+"""
+``kf-train demo``: seed 000 over DDS, with both nodes in processes of their own.
+
+The demo starts the ``estimator`` (``initialization:=prior``, seed 000's start) and the
+``simulator`` (100 samples at 10 Hz) as separate processes in a ROS domain of this
+run's own, records every message with a probe node, and then checks and reports:
+
+* the final position and velocity estimates (±1σ) against the ground truth;
+* the position predicted for t = 12 s (2 s past the last sample) against the true
+  120 m, next to seed 000's two baselines (the Kalman position at the last sample
+  plus 2 s times the running-average or the raw-difference velocity);
+* that the numbers that crossed DDS equal the offline core's (:class:`TrainEstimator`
+  fed the same stamps and measurements).
+
+It writes ``report.txt``, ``series.csv`` and the nodes' logs to ``--output-dir``.
+Exit codes: 0 success, 1 a node failed, discovery timed out or samples were missing,
+2 bad command line, 130 interrupted.
+"""
+
+import argparse
+import csv
+import dataclasses
+import math
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+from typing import Callable, Dict, List, NamedTuple, Optional, Sequence
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
+from kf_train.ros import messages
+from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
+from kf_train.sim.simulation import TrainSimulation
+from nav_msgs.msg import Odometry
+import numpy as np
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import QoSProfile
+from rclpy.signals import SignalHandlerOptions
+
+# Seed 000's scenario; the simulator's and the estimator's defaults give the rest
+# (x0 = 0, v = 10 m/s, σ = 1 m; prior [0, 5] with P0 = I, Q = 0, horizon 2 s).
+SAMPLES = 100
+RATE_HZ = 10.0
+HORIZON_S = 2.0
+WINDOW = 5
+"""Seed 000's running-average window [samples]."""
+
+MAX_DOMAIN_ID = 232
+HOLD_SUBSCRIBERS = 1000
+"""The simulator's largest min_subscribers: it holds the first sample until released."""
+DISCOVERY_TIMEOUT_S = 20.0
+EXIT_TIMEOUT_S = 10.0
+STOP_TIMEOUT_S = 5.0
+PROBE_DEPTH = 1000
+"""Keep-last depth of the probe's subscriptions: never the bottleneck."""
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+TOPICS = {
+    'measurement': PoseWithCovarianceStamped,
+    'ground_truth': Odometry,
+    'estimate': Odometry,
+    'prediction': Odometry,
+}
+"""The topics the probe records, with their message types."""
+
+
+class _Child(NamedTuple):
+    """A node process and the file its output goes to."""
+
+    process: subprocess.Popen
+    log_path: Path
+
+
+class DemoError(Exception):
+    """A failure the demo reports as one line and exit code 1."""
+
+
+class _Terminated(Exception):
+    """SIGTERM reached the demo."""
+
+
+class Probe(Node):
+    """Records every message on the simulator's and the estimator's topics."""
+
+    def __init__(self, *, context: Optional[Context] = None,
+                 node_name: str = 'kf_train_probe', namespace: str = '',
+                 depth: int = PROBE_DEPTH, subscribe_measurement: bool = True):
+        """
+        Subscribe to ground_truth, estimate, prediction and, unless told not to, measurement.
+
+        The topics are relative: in ``namespace`` they are the nodes' of that namespace.
+        Subscribing to ``measurement`` late (:meth:`subscribe_measurement`) lets a
+        simulator with ``min_subscribers`` wait until the probe listens everywhere.
+        """
+        super().__init__(node_name, context=context, namespace=namespace)
+        self.qos = QoSProfile(depth=depth)
+        self.received: Dict[str, List] = {topic: [] for topic in TOPICS}
+        self._topic_subscriptions = {}
+        for topic in ('ground_truth', 'estimate', 'prediction'):
+            self._subscribe(topic)
+        if subscribe_measurement:
+            self.subscribe_measurement()
+
+    def _subscribe(self, topic: str) -> None:
+        """Record ``topic`` into ``self.received[topic]``."""
+        self._topic_subscriptions[topic] = self.create_subscription(
+            TOPICS[topic], topic, self.received[topic].append, self.qos)
+
+    def subscribe_measurement(self) -> None:
+        """Start recording ``measurement`` (idempotent)."""
+        if 'measurement' not in self._topic_subscriptions:
+            self._subscribe('measurement')
+
+    def counts(self) -> Dict[str, int]:
+        """Return how many messages each topic has delivered so far."""
+        return {topic: len(msgs) for topic, msgs in self.received.items()}
+
+    def sees_nodes(self) -> bool:
+        """Return whether the graph shows both nodes' publishers and the estimator's input."""
+        return (all(self.count_publishers(topic) >= 1 for topic in TOPICS)
+                and self.count_subscribers('measurement') >= 1)
+
+
+class DemoSeries(NamedTuple):
+    """The run's messages joined by stamp, as arrays over the samples."""
+
+    stamp_ns: np.ndarray
+    t_s: np.ndarray
+    """Time since the start t0 = first stamp - 1/rate_hz, where the seed's prior holds."""
+    dt_s: float
+    measured_m: np.ndarray
+    variance_m2: np.ndarray
+    truth_m: np.ndarray
+    true_velocity_mps: np.ndarray
+    x_hist: np.ndarray
+    """Estimated [position, velocity] per sample, shape (N, 2), as received."""
+    var_hist: np.ndarray
+    """Received variances [position, velocity], shape (N, 2)."""
+    P_hist: np.ndarray
+    """Full covariances (N, 2, 2) from the offline core (Odometry carries no P[0, 1])."""
+    prediction_stamp_ns: np.ndarray
+    predicted_x: np.ndarray
+    predicted_var: np.ndarray
+    raw_velocity_mps: np.ndarray
+    """Seed 000's raw-difference velocity, N + 1 values (index 0 is t0)."""
+    running_average_mps: np.ndarray
+    """Its running average over WINDOW samples, N + 1 values."""
+    offline_max_abs_diff: float
+    """Largest |DDS - offline core| over estimates, variances and predictions."""
+    simulation_max_abs_diff: float
+    """Largest |received - seeded offline simulation| over measurements and truth."""
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    """Run the demo; return the exit code."""
+    parser = argparse.ArgumentParser(
+        prog='kf-train demo',
+        description='Run seed 000 over DDS: the simulator and the estimator as separate '
+                    'processes in a ROS domain of their own, checked against the offline '
+                    "core and the seed's baselines.")
+    parser.add_argument('--seed', type=int, default=0,
+                        help='seed of the measurement noise (default: %(default)s)')
+    parser.add_argument('--output-dir', default=os.path.join('out', 'demo'),
+                        help='where report.txt, series.csv and the node logs go '
+                             '(default: %(default)s)')
+    parser.add_argument('--timeout-s', type=float, default=30.0,
+                        help='how long to wait for all samples once discovery is done '
+                             '(default: %(default)s)')
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exit_:  # --help, or a usage error already printed
+        return EXIT_OK if exit_.code in (0, None) else EXIT_USAGE
+    if not 0 <= args.seed < 2 ** 31:
+        print(f'kf-train demo: error: --seed must be in [0, 2^31 - 1], got {args.seed}',
+              file=sys.stderr)
+        return EXIT_USAGE
+    if not (math.isfinite(args.timeout_s) and args.timeout_s > 0.0):
+        print(f'kf-train demo: error: --timeout-s must be > 0, got {args.timeout_s}',
+              file=sys.stderr)
+        return EXIT_USAGE
+    previous_sigterm = _raise_on_sigterm()
+    try:
+        report = run_demo(args.seed, Path(args.output_dir), args.timeout_s)
+    except DemoError as error:
+        print(f'kf-train demo: error: {error}', file=sys.stderr)
+        return EXIT_FAILED
+    except (KeyboardInterrupt, ExternalShutdownException, _Terminated):
+        print('kf-train demo: interrupted; nodes stopped', file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if previous_sigterm is not None:
+            signal.signal(signal.SIGTERM, previous_sigterm)
+    print(report)
+    return EXIT_OK
+
+
+def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
+    """Run the nodes, check what they published and write the outputs; return the report."""
+    try:
+        output_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise DemoError(f'cannot create the output directory {output_dir}: '
+                        f'{error.strerror}') from None
+    env = demo_environment(os.environ)
+    domain_id = int(env['ROS_DOMAIN_ID'])
+    _progress(f'ROS_DOMAIN_ID={domain_id}: seed 000, {SAMPLES} samples at {RATE_HZ:g} Hz, '
+              f'noise seed {seed}; node logs in {output_dir}')
+    children: Dict[str, _Child] = {}
+    context = Context()
+    saved_range = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
+    try:
+        # The estimator first: its subscription exists before the simulator looks.
+        children['estimator'] = _start('estimator', [
+            '-p', 'initialization:=prior', '-p', f'horizon_s:={HORIZON_S!r}'],
+            env, output_dir)
+        children['simulator'] = _start('simulator', [
+            '-p', f'seed:={seed}', '-p', f'rate_hz:={RATE_HZ!r}',
+            '-p', f'max_samples:={SAMPLES}',
+            # Hold the first sample until told how many subscribers to wait for.
+            '-p', f'min_subscribers:={HOLD_SUBSCRIBERS}'], env, output_dir)
+        _progress(f'started the estimator (pid {children["estimator"].process.pid}) and '
+                  f'the simulator (pid {children["simulator"].process.pid})')
+        # rcl reads the discovery range from the environment at init.
+        os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = env['ROS_AUTOMATIC_DISCOVERY_RANGE']
+        rclpy.init(context=context, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        probe = Probe(context=context, subscribe_measurement=False)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(probe)
+        if not _spin_until(executor, probe.sees_nodes, DISCOVERY_TIMEOUT_S, children):
+            raise DemoError(
+                f'discovery timed out after {DISCOVERY_TIMEOUT_S:g} s: the probe does not '
+                f'see both nodes in ROS_DOMAIN_ID={domain_id} (see the logs in {output_dir})')
+        # Seeing the estimator does not mean it sees the probe (discovery is not
+        # symmetric): its answer to a service call does, and then it also knows the
+        # probe's older estimate and prediction subscriptions.
+        settings = _estimator_settings(executor, probe)
+        _check_children(children)
+        # Everything else is subscribed. The simulator waits for every measurement
+        # subscriber the probe knows of (the estimator, the probe, anyone else's in a
+        # user-chosen domain), so no sample goes out before the probe listens.
+        probe.subscribe_measurement()
+        subscribers = max(2, probe.count_subscribers('measurement'))
+        problem = set_parameter(executor, probe, 'simulator', 'min_subscribers', subscribers,
+                                DISCOVERY_TIMEOUT_S)
+        if problem is not None:
+            raise DemoError(f'cannot release the simulator: {problem}')
+        _progress(f'both nodes up; sampling for {SAMPLES / RATE_HZ:g} s')
+        if not _spin_until(executor, lambda: _complete(probe), timeout_s, children,
+                           simulator_may_finish=True):
+            counts = ', '.join(f'{topic} {n}' for topic, n in probe.counts().items())
+            raise DemoError(f'samples missing after {timeout_s:g} s: received {counts} '
+                            f'of {SAMPLES} each')
+        children['estimator'].process.send_signal(signal.SIGINT)
+        # The data and the figures while the simulator flushes its last samples;
+        # the report only once both nodes have exited cleanly.
+        series = build_series(probe, seed, settings)
+        _write_data(output_dir, series)
+        _expect_exit(children, 'simulator', EXIT_TIMEOUT_S)
+        _expect_exit(children, 'estimator', EXIT_TIMEOUT_S)
+    finally:
+        _stop(children)
+        context.try_shutdown()
+        if saved_range is None:
+            os.environ.pop('ROS_AUTOMATIC_DISCOVERY_RANGE', None)
+        else:
+            os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = saved_range
+    report = format_report(series, domain_id, seed, settings)
+    (output_dir / 'report.txt').write_text(report + '\n')
+    _progress(f'wrote report.txt and series.csv to {output_dir}')
+    return report
+
+
+def demo_environment(environ) -> Dict[str, str]:
+    """Return the children's environment: the user's domain if set, else one of this run."""
+    env = dict(environ)
+    if not env.get('ROS_DOMAIN_ID', '').strip():
+        # 1..100 keeps Fast DDS's port arithmetic valid; the pid spreads concurrent runs.
+        env['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
+        env.pop('ROS_STATIC_PEERS', None)
+    try:
+        domain_id = int(env['ROS_DOMAIN_ID'])
+    except ValueError:
+        domain_id = -1
+    # Fast DDS cannot map larger ids to ports, and exits the process if asked to.
+    if not 0 <= domain_id <= MAX_DOMAIN_ID:
+        raise DemoError(f'ROS_DOMAIN_ID must be an integer in [0, {MAX_DOMAIN_ID}], '
+                        f'got {env["ROS_DOMAIN_ID"]!r}')
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    env['PYTHONUNBUFFERED'] = '1'
+    return env
+
+
+def node_command(name: str) -> List[str]:
+    """Return the command starting node ``name``: the console script beside Python, or -m."""
+    script = Path(sys.executable).parent / name
+    if script.is_file() and os.access(script, os.X_OK):
+        return [str(script)]
+    return [sys.executable, '-m', f'kf_train.ros.{name}_node']
+
+
+def _start(name: str, ros_args: List[str], env: Dict[str, str], output_dir: Path) -> _Child:
+    """Start node ``name`` with its output in ``output_dir/<name>.log``."""
+    command = node_command(name) + ['--ros-args'] + ros_args
+    log_path = output_dir / f'{name}.log'
+    try:
+        with open(log_path, 'w') as log:
+            return _Child(subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL,
+                                           stdout=log, stderr=subprocess.STDOUT), log_path)
+    except OSError as error:
+        raise DemoError(f'cannot start the {name} ({command[0]}): {error.strerror}') from None
+
+
+def _spin_until(executor, condition: Callable[[], bool], timeout_s: float,
+                children: Dict[str, _Child],
+                simulator_may_finish: bool = False) -> bool:
+    """Spin until ``condition()``; raise DemoError as soon as a node exits unexpectedly."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        _check_children(children, simulator_may_finish)
+        if time.monotonic() > deadline:
+            return False
+        executor.spin_once(timeout_sec=0.05)
+    return True
+
+
+def _check_children(children: Dict[str, _Child], simulator_may_finish: bool = False) -> None:
+    """Raise DemoError if a node has exited (the simulator may, once it is done)."""
+    for name, child in children.items():
+        code = child.process.poll()
+        if code is None or (code == 0 and name == 'simulator' and simulator_may_finish):
+            continue
+        raise DemoError(f'the {name} exited early with code {code}: {_last_line(child)}')
+
+
+def settings_from_parameters(values: Dict[str, object]) -> EstimatorSettings:
+    """Return the EstimatorSettings of an estimator node with these parameter values."""
+    fields = {field.name for field in dataclasses.fields(EstimatorSettings)}
+    settings = {}
+    for name, value in values.items():
+        if name in fields:
+            # Array parameters arrive as lists or array.array; the settings keep tuples.
+            is_array = isinstance(value, (list, tuple)) or hasattr(value, 'typecode')
+            settings[name] = tuple(float(v) for v in value) if is_array else value
+    return EstimatorSettings(**settings)
+
+
+def fetch_parameters(executor, node: Node, target: str, names: Sequence[str],
+                     timeout_s: float, attempt_s: float = 2.0) -> Optional[Dict[str, object]]:
+    """
+    Return parameters of node ``target`` by a service round trip, or None after timeout_s.
+
+    A call is repeated every ``attempt_s``: one made while discovery is still going on
+    may be lost. Undeclared parameters come back as None.
+    """
+    names = list(names)
+    response = _call_until_answered(
+        executor, AsyncParameterClient(node, target),
+        lambda client: client.get_parameters(names), timeout_s, attempt_s)
+    if response is None:
+        return None
+    return {name: parameter_value_to_python(value)
+            for name, value in zip(names, response.values)}
+
+
+def set_parameter(executor, node: Node, target: str, name: str, value,
+                  timeout_s: float, attempt_s: float = 2.0) -> Optional[str]:
+    """Set one parameter of node ``target``; return None on success, else the reason."""
+    response = _call_until_answered(
+        executor, AsyncParameterClient(node, target),
+        lambda client: client.set_parameters([Parameter(name, value=value)]),
+        timeout_s, attempt_s)
+    if response is None:
+        return f'{target} did not answer within {timeout_s:g} s'
+    result = response.results[0]
+    return None if result.successful else result.reason
+
+
+def _call_until_answered(executor, client: AsyncParameterClient, call, timeout_s: float,
+                         attempt_s: float):
+    """Return the response of ``call(client)``, repeated every attempt_s; None on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not client.wait_for_services(
+                timeout_sec=max(0.0, min(attempt_s, deadline - time.monotonic()))):
+            continue
+        future = call(client)
+        executor.spin_until_future_complete(
+            future, timeout_sec=max(0.0, min(attempt_s, deadline - time.monotonic())))
+        if future.done() and future.result() is not None:
+            return future.result()
+    return None
+
+
+def _estimator_settings(executor, probe: Probe) -> EstimatorSettings:
+    """Ask the estimator node for its parameters; return the settings it runs with."""
+    names = sorted(field.name for field in dataclasses.fields(EstimatorSettings))
+    values = fetch_parameters(executor, probe, 'estimator', names, DISCOVERY_TIMEOUT_S)
+    if values is None:
+        raise DemoError(f'the estimator did not answer get_parameters within '
+                        f'{DISCOVERY_TIMEOUT_S:g} s')
+    # Parameters the node does not declare come back NOT_SET (None): defaults apply.
+    return settings_from_parameters({n: v for n, v in values.items() if v is not None})
+
+
+def _complete(probe: Probe) -> bool:
+    """Return whether every topic has delivered all samples."""
+    return all(n >= SAMPLES for n in probe.counts().values())
+
+
+def _expect_exit(children: Dict[str, _Child], name: str, timeout_s: float) -> None:
+    """Wait for node ``name`` to exit; raise DemoError unless it exits 0 in time."""
+    try:
+        code = children[name].process.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        raise DemoError(f'the {name} did not exit within {timeout_s:g} s') from None
+    if code != 0:
+        raise DemoError(f'the {name} exited with code {code}: {_last_line(children[name])}')
+
+
+def _stop(children: Dict[str, _Child]) -> None:
+    """Stop every child still running: SIGINT, then SIGKILL after STOP_TIMEOUT_S."""
+    running = [child.process for child in children.values() if child.process.poll() is None]
+    for child in running:
+        child.send_signal(signal.SIGINT)
+    for child in running:
+        try:
+            child.wait(timeout=STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.wait()
+
+
+def _last_line(child: _Child) -> str:
+    """Return the last non-empty line a child logged, for a one-line error."""
+    try:
+        with open(child.log_path, errors='replace') as log:
+            lines = [line.strip() for line in log if line.strip()]
+    except OSError:
+        return '(no output)'
+    return lines[-1] if lines else '(no output)'
+
+
+def _progress(text: str) -> None:
+    """Print a progress line to stderr, keeping stdout for the report."""
+    print(f'kf-train demo: {text}', file=sys.stderr, flush=True)
+
+
+def _raise_on_sigterm():
+    """Turn SIGTERM into an exception so the children are stopped; return the old handler."""
+    def handler(signum, frame):
+        raise _Terminated()
+    try:
+        return signal.signal(signal.SIGTERM, handler)
+    except ValueError:  # not the main thread: leave signals alone
+        return None
+
+
+def build_series(probe: Probe, seed: int, settings: EstimatorSettings) -> DemoSeries:
+    """Join the recorded messages by stamp and recompute everything offline."""
+    settings = settings.resolved()  # the preset's values where the settings leave None
+    measurements = sorted((messages.from_measurement_msg(m)
+                           for m in probe.received['measurement']), key=lambda m: m.stamp_ns)
+    truth = {s.stamp_ns: s for s in map(messages.from_odometry_msg,
+                                        probe.received['ground_truth'])}
+    estimates = {s.stamp_ns: s for s in map(messages.from_odometry_msg,
+                                            probe.received['estimate'])}
+    predictions = {s.stamp_ns: s for s in map(messages.from_odometry_msg,
+                                              probe.received['prediction'])}
+    measurements = measurements[:SAMPLES]
+    stamps = [m.stamp_ns for m in measurements]
+    if len(set(stamps)) != len(stamps):
+        raise DemoError('two measurements carry the same stamp')
+    missing = [name for name, table in (('ground_truth', truth), ('estimate', estimates))
+               if any(stamp not in table for stamp in stamps)]
+    if missing:
+        raise DemoError(f'no {" or ".join(missing)} message for some measurement stamps')
+
+    period_ns = round(NS_PER_S / RATE_HZ)
+    t0_ns = stamps[0] - period_ns
+    offline = TrainEstimator(settings)
+    x_hist, var_hist, P_hist = [], [], []
+    prediction_stamps, predicted_x, predicted_var = [], [], []
+    diffs = [0.0]
+    for m in measurements:
+        step = offline.process(m.stamp_ns, m.position_m, m.variance_m2)
+        e = estimates[m.stamp_ns]
+        if step.prediction_stamp_ns not in predictions:
+            raise DemoError(f'no prediction stamped {step.prediction_stamp_ns} ns '
+                            f'({settings.horizon_s:g} s after a measurement)')
+        p = predictions[step.prediction_stamp_ns]
+        received = np.array([e.position_m, e.velocity_mps, e.position_variance_m2,
+                             e.velocity_variance_m2s2, p.position_m, p.velocity_mps,
+                             p.position_variance_m2, p.velocity_variance_m2s2])
+        expected = np.concatenate((step.x, np.diag(step.P), step.predicted_x,
+                                   np.diag(step.predicted_P)))
+        diffs.append(float(np.max(np.abs(received - expected))))
+        x_hist.append(received[0:2])
+        var_hist.append(received[2:4])
+        P_hist.append(step.P)
+        prediction_stamps.append(p.stamp_ns)
+        predicted_x.append(received[4:6])
+        predicted_var.append(received[6:8])
+
+    measured = np.array([m.position_m for m in measurements])
+    truth_m = np.array([truth[s].position_m for s in stamps])
+    true_velocity = np.array([truth[s].velocity_mps for s in stamps])
+    simulation = TrainSimulation(seed=seed).generate(SAMPLES)  # the nodes' defaults
+    simulation_diff = float(max(np.max(np.abs(measured - simulation.measured_position_m)),
+                                np.max(np.abs(truth_m - simulation.true_position_m))))
+    dt_s = period_ns / NS_PER_S
+    # Seed 000: v = [0, diff([x0, z1, …, zN]) / dt], then MATLAB's causal filter.
+    raw = raw_difference_velocity(measured, dt_s, first_position_m=0.0)
+    return DemoSeries(
+        np.array(stamps), (np.array(stamps) - t0_ns) / NS_PER_S, dt_s, measured,
+        np.array([m.variance_m2 for m in measurements]), truth_m, true_velocity,
+        np.array(x_hist), np.array(var_hist), np.array(P_hist), np.array(prediction_stamps),
+        np.array(predicted_x), np.array(predicted_var), raw, running_average(raw, WINDOW),
+        max(diffs), simulation_diff)
+
+
+def format_report(series: DemoSeries, domain_id: int, seed: int,
+                  settings: EstimatorSettings) -> str:
+    """Return the demo's report: estimates, predictions and baselines against the truth."""
+    settings = settings.resolved()  # the preset's values where the settings leave None
+    x, var = series.x_hist[-1], series.var_hist[-1]
+    t_end = series.t_s[-1]
+    horizon_s = (int(series.prediction_stamp_ns[-1]) - int(series.stamp_ns[-1])) / NS_PER_S
+    t_future = t_end + horizon_s
+    # True position at the predicted time: x_true(t_N) + v_true · horizon.
+    truth_future = series.truth_m[-1] + series.true_velocity_mps[-1] * horizon_s
+    # Seed 000's projections: Kalman position at t_N + horizon · baseline velocity.
+    running = float(extrapolate(x[0], series.running_average_mps[-1], horizon_s))
+    raw = float(extrapolate(x[0], series.raw_velocity_mps[-1], horizon_s))
+    rows = [
+        (f'final position [m] (t = {t_end:.1f} s)', x[0], math.sqrt(var[0]),
+         series.truth_m[-1]),
+        (f'final velocity [m/s] (t = {t_end:.1f} s)', x[1], math.sqrt(var[1]),
+         series.true_velocity_mps[-1]),
+        (f'position at t = {t_future:.1f} s [m]: Kalman', series.predicted_x[-1][0],
+         math.sqrt(series.predicted_var[-1][0]), truth_future),
+        (f'  running average ({WINDOW} samples) baseline', running, None, truth_future),
+        ('  raw difference baseline', raw, None, truth_future),
+    ]
+    width = max(len(row[0]) for row in rows)
+    header = (f'{"":<{width}}  {"estimate":>10}  {"±1σ":>8}  {"truth":>9}  {"error":>8}'
+              f'  {"error/σ":>7}')
+    lines = [
+        f'kf-train demo: seed 000 over DDS (ROS_DOMAIN_ID={domain_id}), '
+        f'{len(series.t_s)} samples at {1.0 / series.dt_s:g} Hz, noise seed {seed}',
+        f'estimator: initialization={settings.initialization}, '
+        f'initial_state={list(settings.initial_state)}, '
+        f'initial_covariance={list(settings.initial_covariance)}, '
+        f'q={settings.process_noise_density:g}',
+        f'baselines (seed 000): the Kalman position at t = {t_end:.1f} s + {horizon_s:g} s × '
+        'the baseline velocity',
+        '',
+        header,
+    ]
+    for label, value, sigma, truth in rows:
+        error = value - truth
+        sigma_text = f'±{sigma:.3f}' if sigma is not None else '-'
+        ratio_text = f'{error / sigma:+.2f}' if sigma else '-'
+        lines.append(f'{label:<{width}}  {value:>10.3f}  {sigma_text:>8}  {truth:>9.3f}  '
+                     f'{error:>+8.3f}  {ratio_text:>7}')
+    lines += [
+        '',
+        f'DDS vs offline core (TrainEstimator, same stamps and measurements): '
+        f'max |difference| = {series.offline_max_abs_diff:.3g}',
+        f'measurements and truth vs the seeded offline simulation: '
+        f'max |difference| = {series.simulation_max_abs_diff:.3g}',
+    ]
+    return '\n'.join(lines)
+
+
+CSV_COLUMNS = (
+    'stamp_ns', 't_s', 'measured_m', 'measurement_variance_m2', 'truth_m',
+    'true_velocity_mps', 'position_m', 'velocity_mps', 'var_position_m2',
+    'var_velocity_m2s2', 'cov_position_velocity_m2s', 'prediction_stamp_ns',
+    'predicted_position_m', 'predicted_velocity_mps', 'var_predicted_position_m2',
+    'var_predicted_velocity_m2s2', 'raw_velocity_mps', 'running_average_velocity_mps')
+"""Columns of series.csv; floats are written with repr() so they read back exactly."""
+
+
+def _write_data(output_dir: Path, series: DemoSeries) -> None:
+    """Write series.csv and the figures."""
+    with open(output_dir / 'series.csv', 'w', newline='') as stream:
+        writer = csv.writer(stream)
+        writer.writerow(CSV_COLUMNS)
+        for k in range(len(series.t_s)):
+            # Index k + 1 in the baselines: their index 0 is t0, before the first sample.
+            writer.writerow([int(series.stamp_ns[k])] + [repr(float(v)) for v in (
+                series.t_s[k], series.measured_m[k], series.variance_m2[k],
+                series.truth_m[k], series.true_velocity_mps[k], series.x_hist[k][0],
+                series.x_hist[k][1], series.var_hist[k][0], series.var_hist[k][1],
+                series.P_hist[k][0, 1])] + [int(series.prediction_stamp_ns[k])] + [
+                repr(float(v)) for v in (
+                    series.predicted_x[k][0], series.predicted_x[k][1],
+                    series.predicted_var[k][0], series.predicted_var[k][1],
+                    series.raw_velocity_mps[k + 1], series.running_average_mps[k + 1])])
+    _write_figures(output_dir, series)
+
+
+def _write_figures(output_dir: Path, series: DemoSeries) -> None:
+    """
+    Draw seed 000's figures with kf_train.cli.plotting, when that module is available.
+
+    The single call site of the plotting module. x_hist and P_hist hold the N samples
+    (no prior row); P_hist is the offline core's full covariance, equal to the received
+    variances on its diagonal.
+    """
+    try:
+        from kf_train.cli import plotting
+        seed000_figures = plotting.seed000_figures
+    except (ImportError, AttributeError):
+        _progress('figures: not available')
+        return
+    paths = seed000_figures(str(output_dir), series.t_s, series.measured_m, series.truth_m,
+                            series.x_hist, series.P_hist, series.dt_s)
+    _progress('figures: ' + ', '.join(os.path.basename(str(p)) for p in paths or ()))
+
+
+if __name__ == '__main__':
+    sys.exit(main())

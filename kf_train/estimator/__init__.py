@@ -1,0 +1,1 @@
+"""Floor 3, the streaming estimator: stamped measurements in, estimates out."""

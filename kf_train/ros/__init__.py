@@ -1,0 +1,1 @@
+"""Floor 4, the ROS adapters: the only place that imports rclpy or message packages."""

@@ -1,0 +1,1 @@
+"""Floor 3, simulation: truth, seed scenarios, streams, faults and baselines."""

@@ -1,0 +1,93 @@
+"""
+Smoke tests of ``make bench`` (benchmarks/bench.py) and of the nodes' import weight.
+
+The benchmark asserts nothing about speed and neither do these tests: they check that
+``--quick`` runs every row end to end (the live rows with real node processes) and
+prints one table with its header, and that the node modules do not import scipy or
+matplotlib, which would add about 0.8 s and 60 MiB to every node's start-up.
+"""
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+from ros_helpers import isolated_env
+
+BENCH_TIMEOUT_S = 300.0
+# The benchmark is not part of the installed package: load it from the source tree.
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+BENCH = os.path.join(REPO, 'benchmarks', 'bench.py')
+_spec = importlib.util.spec_from_file_location('bench', BENCH)
+bench = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(bench)
+
+
+def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
+    """--quick measures rows 1 to 6 (one live rate) and prints and saves one table."""
+    output = tmp_path / 'out' / 'bench.md'
+    result = subprocess.run(
+        [sys.executable, BENCH, '--quick', '--rates', '2000',
+         '--output', str(output)],
+        capture_output=True, text=True, timeout=BENCH_TIMEOUT_S, env=isolated_env(domain_id))
+    assert result.returncode == 0, result.stderr[-2000:]
+    out = result.stdout
+    for expected in ('Machine: ', ' cores', 'Python ', 'numpy ', 'rclpy ', 'filterpy ',
+                     '| Row | Measurement | Case | Result | Ratio | Target |'):
+        assert expected in out, expected
+    table = [line for line in out.splitlines() if line.startswith('| ')]
+    assert len([line for line in out.splitlines() if line.startswith('| Row |')]) == 1
+    rows = {line.split('|')[1].strip() for line in table[1:]}
+    assert rows == {'1', '2', '3', '4', '5', '6'}
+    assert not [line for line in table if 'failed:' in line], table
+    # Every live trial got through and exited; every start-up was measured.
+    live = [line for line in table if line.startswith('| 4 |')]
+    assert len(live) == 3 and all('latency median' in line for line in live), live
+    assert all('exit 0' in line for line in live), live
+    startup = [line for line in table if line.startswith('| 5 |')]
+    assert len(startup) == 4 and all('peak RSS' in line for line in startup), startup
+    filters = [line for line in table if line.startswith('| 6 |')]
+    assert len(filters) == 6 and all('× the UKF' in line for line in filters), filters
+    # The file holds the header and the same table.
+    saved = output.read_text()
+    assert saved.splitlines()[0].startswith('kf_train benchmark, ')
+    assert [line for line in saved.splitlines() if line.startswith('| ')] == table
+
+
+@pytest.mark.parametrize('argv', [['--rows', '7'], ['--rows', 'x'], ['--rates', '0'],
+                                  ['--bogus']])
+def test_bad_command_line_exits_2(argv, capsys):
+    """An unknown row, a bad rate or option: exit 2 with argparse's message."""
+    assert bench.main(argv) == 2
+    assert 'kf-train bench' in capsys.readouterr().err
+
+
+def test_help_exits_0(capsys):
+    """--help documents the options."""
+    assert bench.main(['--help']) == 0
+    out = capsys.readouterr().out
+    for option in ('--quick', '--rows', '--rates', '--output'):
+        assert option in out
+
+
+def test_percentile_is_nearest_rank():
+    """The latency percentiles are nearest-rank: an observed value, never interpolated."""
+    values = list(range(1, 101))
+    assert bench._percentile(values, 0.5) == 50
+    assert bench._percentile(values, 0.99) == 99
+    assert bench._percentile([7.0], 0.99) == 7.0
+    assert bench._percentile([], 0.5) != bench._percentile([], 0.5)  # NaN
+
+
+def test_nodes_do_not_import_scipy_or_matplotlib():
+    """Importing either node module (and so the runner and the core) pulls in neither."""
+    code = ('import json, sys\n'
+            'import kf_train.ros.estimator_node, kf_train.ros.simulator_node\n'
+            'print(json.dumps(sorted(m for m in sys.modules\n'
+            '                 if m.split(".")[0] in ("scipy", "matplotlib"))))\n')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=120, env=dict(os.environ, PYTHONDONTWRITEBYTECODE='1'))
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout) == []

@@ -1,0 +1,40 @@
+"""The README documents every parameter the nodes declare, and the quick start."""
+
+import os
+import re
+
+from kf_train.ros.estimator_node import EstimatorNode
+from kf_train.ros.simulator_node import SimulatorNode
+import pytest
+
+README = os.path.join(os.path.dirname(__file__), '..', '..', 'README.md')
+INTERNAL = {'use_sim_time', 'start_type_description_service'}
+
+
+def _readme() -> str:
+    """Return the README text."""
+    with open(README, encoding='utf-8') as stream:
+        return stream.read()
+
+
+@pytest.mark.parametrize('node_class', [SimulatorNode, EstimatorNode])
+def test_every_declared_parameter_is_documented(ros_context, node_class):
+    """Each declared parameter has a row in the README's tables, with its default."""
+    node = node_class(context=ros_context)
+    try:
+        text = _readme()
+        missing = []
+        for name in sorted(set(node._parameters) - INTERNAL):
+            row = re.search(r'^\| `' + re.escape(name) + r'` \| `([^`]*)` \|', text, re.M)
+            if row is None:
+                missing.append(name)
+        assert not missing, f'README lacks parameter rows for {missing}'
+    finally:
+        node.destroy_node()
+
+
+def test_quick_start_gives_both_commands():
+    """The quick start names make demo and make test."""
+    text = _readme()
+    assert 'make demo' in text and 'make test' in text
+    assert 'PARAMETER_TABLES' not in text and 'BENCH_SECTION' not in text
