@@ -2,17 +2,16 @@
 ``make bench`` row 6: time per update of the filter family on the range-bearing seed.
 
 Each filter runs the seed scenario (scenario 0, 100 rows, the preset's initial state)
-through :func:`kf_train.batch.series.run_filter_series` (predict + update + reading
+through :func:`kf_train.batch.run_filter_series` (predict + update + reading
 the estimate per row); after an untimed warm-up, the best of a few repeats is reported
 per row, and as a ratio to the UKF's. Prints figures only: issue 14 asks for the
 particle filter's time per update reported against the UKF, not for a bound.
 """
 
 import time
-from typing import List, Tuple
+from typing import List
 
-Row = Tuple[str, str, str, str, str, str]
-"""One table row: (row, measurement, case, result, ratio, target)."""
+from bench_common import Row
 
 CASES = (('ekf', {}), ('ukf', {}), ('pf', {'particles': 1000}), ('pf', {'particles': 2000}),
          ('pf', {'particles': 5000}), ('bootstrap-pf', {'particles': 5000}))
@@ -20,8 +19,8 @@ CASES = (('ekf', {}), ('ukf', {}), ('pf', {'particles': 1000}), ('pf', {'particl
 
 def _seconds_per_row(preset, kind: str, overrides: dict, scenario, repeats: int) -> float:
     """Return the best time per row [s] of ``repeats`` runs over the scenario."""
-    from kf_train.batch.series import run_filter_series
-    from kf_train.filters.family import make_filter
+    from kf_train.batch import run_filter_series
+    from kf_train.filters import make_filter
     filt = make_filter(preset, kind, seed=0, **overrides)
     run_filter_series(filt, scenario.t_s, scenario.z, horizon_s=0.0)   # warm-up, untimed
     best = float('inf')
@@ -34,8 +33,8 @@ def _seconds_per_row(preset, kind: str, overrides: dict, scenario, repeats: int)
 
 def row_filters(quick: bool) -> List[Row]:
     """Return row 6: µs per update of EKF, UKF, pf (N = 1000, 2000, 5000), bootstrap-pf."""
-    from kf_train.presets.loader import load_preset
-    from kf_train.sim.scenarios import scenario_for_preset
+    from kf_train.presets import load_preset
+    from kf_train.sim import scenario_for_preset
     preset = load_preset('range-bearing')
     scenario = scenario_for_preset('range-bearing', 0)
     repeats = 1 if quick else 5

@@ -14,12 +14,11 @@ import math
 import sys
 import time
 
-from kf_train.batch.series import time_steps_s
+from kf_train.batch import time_steps_s
 from kf_train.cli.compare import anees_bounds, derived_seed, nees
-from kf_train.filters.particle import ParticleFilter, psd_factor
-from kf_train.filters.regularised_pf import RegularisedParticleFilter
-from kf_train.presets.loader import load_preset
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.filters import ParticleFilter, psd_factor, RegularisedParticleFilter
+from kf_train.presets import load_preset
+from kf_train.sim import scenario_for_preset
 import numpy as np
 
 VARIANTS = (

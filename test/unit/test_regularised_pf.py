@@ -7,15 +7,13 @@ bootstrap filter runs through the same checks and fails them.
 
 import math
 
-from kf_train.batch.series import run_filter_series, time_steps_s
+from kf_train.batch import run_filter_series, time_steps_s
 from kf_train.cli.compare import anees_bounds, nees, run_comparison
-from kf_train.filters.family import FilterOptions, make_filter
-from kf_train.filters.particle import ParticleFilter
-from kf_train.filters.regularised_pf import (
-    kernel_draws, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
-    tempering_step)
-from kf_train.presets.loader import load_preset, preset_from_mapping
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.filters import (
+    FilterOptions, kernel_draws, make_filter, optimal_bandwidth, ParticleFilter,
+    regularisation_jitter, RegularisedParticleFilter, tempering_step)
+from kf_train.presets import load_preset, preset_from_mapping
+from kf_train.sim import scenario_for_preset
 import numpy as np
 import pytest
 from scipy import stats
