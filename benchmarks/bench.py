@@ -17,6 +17,8 @@ Rows (``--rows``, default all that exist):
    node (same QoS, republishes each message): the transport's own cost.
 5. Start-up: process start to first output, and peak RSS, for each node and for a
    bare rclpy node with the same publishers.
+6. The filter family on the range-bearing seed: µs per update of EKF, UKF, the
+   regularised particle filter and the bootstrap one, each as a ratio to the UKF.
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -25,8 +27,9 @@ every measurement (a smoke test, not figures to quote).
 
 This directory is not installed with kf_train (it imports filterpy, a test and
 benchmark oracle): ``make bench`` runs this file, ``kf-train bench`` too from a source
-checkout. Rows 1-3 are in bench_core.py, rows 4-5 in bench_live.py, the child
-processes in bench_children.py and the helper nodes are the node_*.py files.
+checkout. Rows 1-3 are in bench_core.py, rows 4-5 in bench_live.py, row 6 in
+bench_filters.py, the child processes in bench_children.py and the helper nodes are
+the node_*.py files.
 """
 
 import argparse
@@ -39,11 +42,12 @@ from typing import List, Optional
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_common import header, percentile, Row, table  # noqa: E402, I100
 from bench_core import row_core, row_fleet, row_replay  # noqa: E402
+from bench_filters import row_filters  # noqa: E402
 from bench_live import LIVE_QOS_DEPTH, LIVE_RATES_HZ, row_live, row_startup  # noqa: E402
 
 __all__ = ['main', 'percentile', 'ROWS']
 
-ROWS = (1, 2, 3, 4, 5)
+ROWS = (1, 2, 3, 4, 5, 6)
 
 
 def _parse(argv: List[str]) -> argparse.Namespace:
@@ -93,7 +97,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     measure = {1: lambda: row_core(args.quick), 2: lambda: row_replay(args.quick),
                3: lambda: row_fleet(args.quick),
                4: lambda: row_live(args.quick, args.rates, args.qos_depth),
-               5: lambda: row_startup(args.quick)}
+               5: lambda: row_startup(args.quick),
+               6: lambda: row_filters(args.quick)}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()

@@ -10,7 +10,8 @@ from kf_train.filters import (
 
 def add_filter_options(parser: argparse.ArgumentParser) -> None:
     """Add the tuning options: UKF --alpha/--beta/--kappa, PF --particles/--seed/...."""
-    group = parser.add_argument_group('filter tuning (ukf: alpha, beta, kappa; pf: the rest)')
+    group = parser.add_argument_group(
+        'filter tuning (ukf: alpha, beta, kappa; pf, bootstrap-pf: the rest)')
     group.add_argument('--alpha', type=float, default=DEFAULT_ALPHA,
                        help='UKF sigma-point spread alpha > 0 (default %(default)g)')
     group.add_argument('--beta', type=float, default=DEFAULT_BETA,
@@ -25,9 +26,10 @@ def add_filter_options(parser: argparse.ArgumentParser) -> None:
                        default=DEFAULT_RESAMPLE_THRESHOLD,
                        help='particle filter: resample when ESS < F·N (default %(default)g)')
     group.add_argument('--roughening', metavar='K', type=float, default=0.0,
-                       help='particle filter: after resampling, jitter each state by '
+                       help='bootstrap-pf only: after resampling, jitter each state by '
                             'N(0, (K·range·N^(-1/n))²) (Gordon et al. 1993); 0, the '
-                            'default, is the plain bootstrap filter')
+                            'default, is the plain bootstrap filter (pf regularises '
+                            'with its own kernel)')
 
 
 def filter_options(args: argparse.Namespace) -> FilterOptions:

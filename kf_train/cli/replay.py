@@ -30,11 +30,11 @@ With an ``id`` column, linear presets run as a vectorised bank
 along their own time axis); the results equal filtering each id alone. The EKF preset
 and ``--filter`` run id by id.
 
-``--filter kf|ekf|ukf|pf`` runs that filter of the family
+``--filter kf|ekf|ukf|pf|bootstrap-pf`` runs that filter of the family
 (:mod:`kf_train.filters.family`) row by row instead, with the same columns (variances
-from the filter's covariance; for ``pf`` the particles'); ``--alpha``, ``--beta``,
-``--kappa`` tune the UKF, ``--particles``, ``--seed``, ``--resample-threshold``,
-``--roughening`` the particle filter.
+from the filter's covariance; for the particle filters the particles'); ``--alpha``,
+``--beta``, ``--kappa`` tune the UKF, ``--particles``, ``--seed``,
+``--resample-threshold`` the particle filters, ``--roughening`` the bootstrap one.
 
 Bad input (a missing column, a non-numeric or non-finite cell, a row with the wrong
 number of fields, a non-increasing ``t`` (per id), an empty id) is reported with the
@@ -58,7 +58,7 @@ from kf_train.batch import (
     run_linear_series, run_series, SeriesError, SeriesResult, smooth_series, SmootherResult,
     TimeOrderError)
 from kf_train.cli.filter_options import add_filter_options, filter_options
-from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S
+from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S, PARTICLE_KINDS
 from kf_train.io import csvio
 from kf_train.presets import available_presets, load_preset, load_preset_file, Preset
 import numpy as np
@@ -446,7 +446,7 @@ def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
            smooth: bool = False, t0_s: float = 0.0, fast: bool = True,
            filt: Optional[Filter] = None) -> ReplaySummary:
     """Replay ``input_path`` through ``preset`` into ``output_path``; raise InputError."""
-    if smooth and filt is not None and filt.kind == 'pf':
+    if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
         raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
                          'smoother does not apply to particles')
     start = time.perf_counter()

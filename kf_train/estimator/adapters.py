@@ -9,8 +9,8 @@ pair, so it needs models without state of their own. :func:`make_model` picks on
 * the train's KF in closed form (:class:`_FastTrainModel`; equal to the generic path
   to rounding, ~4x cheaper);
 * the UKF's unscented transform of either;
-* a bootstrap particle filter whose particles stay behind each mean it returns
-  (:class:`_ParticleModel`).
+* a particle filter (``pf``: the regularised one; ``bootstrap-pf``) whose particles
+  stay behind each mean it returns (:class:`_ParticleModel`).
 """
 
 import math
@@ -18,8 +18,9 @@ from typing import Callable, Dict, Optional, Tuple
 import weakref
 
 from kf_train.filters import (
-    closed_form, constant_velocity_model, LinearModel, ParticleFilter, UnscentedModel,
-    UpdateResult, white_noise_terms, WhiteNoiseAcceleration)
+    closed_form, constant_velocity_model, LinearModel, PARTICLE_KINDS, ParticleFilter,
+    RegularisedParticleFilter, UnscentedModel, UpdateResult, white_noise_terms,
+    WhiteNoiseAcceleration)
 from kf_train.presets import Preset
 import numpy as np
 
@@ -136,7 +137,7 @@ class _FastTrainModel:
 
 class _ParticleModel:
     """
-    A bootstrap particle filter behind the pure ``predict(x, P, dt, u)``/``update`` interface.
+    A particle filter behind the pure ``predict(x, P, dt, u)``/``update`` interface.
 
     The estimator keeps states as (x, P) and rewinds by going back to an older pair.
     Each mean this model returns stands for its particles: their snapshot (particles,
@@ -148,7 +149,8 @@ class _ParticleModel:
     """
 
     def __init__(self, model: LinearModel, particles: int, seed: int,
-                 resample_threshold: float, states: Dict[int, object]):
+                 resample_threshold: float, states: Dict[int, object],
+                 filter_class=RegularisedParticleFilter):
         """Run ``model`` with ``particles`` particles; keep snapshots in ``states``."""
         self.base = model
         self.state_names = model.state_names
@@ -159,9 +161,9 @@ class _ParticleModel:
         self.seed = seed
         self.states = states
         n = model.dim_x
-        self.filter = ParticleFilter(model, np.zeros(n), np.zeros((n, n)),
-                                     n_particles=particles, seed=seed,
-                                     resample_threshold=resample_threshold)
+        self.filter = filter_class(model, np.zeros(n), np.zeros((n, n)),
+                                   n_particles=particles, seed=seed,
+                                   resample_threshold=resample_threshold)
 
     def _load(self, x: np.ndarray, P: np.ndarray) -> None:
         """Make the filter's particles those behind x (drawn from N(x, P) if none)."""
@@ -207,9 +209,9 @@ def make_model(settings, preset: Preset, particle_states: Optional[Dict[int, obj
 
     ``settings`` are validated :class:`~kf_train.estimator.EstimatorSettings`. ``kf``
     and ``ekf`` (an EKF of a linear model is the KF) use the linear model itself,
-    ``ukf`` its unscented transform, ``pf`` a :class:`_ParticleModel` on it (keeping
-    its particles in ``particle_states``). With ``fast``, the train's KF is
-    :class:`_FastTrainModel`, its closed form.
+    ``ukf`` its unscented transform, ``pf`` and ``bootstrap-pf`` a
+    :class:`_ParticleModel` on it (keeping its particles in ``particle_states``). With
+    ``fast``, the train's KF is :class:`_FastTrainModel`, its closed form.
     """
     q = settings.process_noise_density
     if settings.preset == 'train':
@@ -222,8 +224,10 @@ def make_model(settings, preset: Preset, particle_states: Optional[Dict[int, obj
     if settings.filter == 'ukf':
         return UnscentedModel.from_model(model, alpha=settings.ukf_alpha,
                                          beta=settings.ukf_beta, kappa=settings.ukf_kappa)
-    if settings.filter == 'pf':
+    if settings.filter in PARTICLE_KINDS:
         return _ParticleModel(model, settings.pf_particles, settings.pf_seed,
                               settings.pf_resample_threshold,
-                              {} if particle_states is None else particle_states)
+                              {} if particle_states is None else particle_states,
+                              RegularisedParticleFilter if settings.filter == 'pf'
+                              else ParticleFilter)
     return model

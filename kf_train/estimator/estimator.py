@@ -9,7 +9,8 @@ state and covariance, the nominal period and the horizon; a setting that is not 
 overrides the preset's value.
 
 The filter (``filter``, fixed for the estimator's life like the preset) is ``kf``
-(default), ``ekf`` (the KF on these linear presets), ``ukf`` or ``pf``: each is a pure
+(default), ``ekf`` (the KF on these linear presets), ``ukf``, ``pf`` (the regularised
+particle filter) or ``bootstrap-pf`` (the plain bootstrap filter): each is a pure
 ``predict(x, P, dt, u)``/``update(x, P, z, R)`` model, so the input contract, the χ²
 gate (on the filter's own NIS), the out-of-sequence replay, controls and resets work
 alike for all. The particle filter keeps the particles behind every kept mean, so a

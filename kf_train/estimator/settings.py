@@ -102,7 +102,8 @@ class EstimatorSettings:
     """R of a measured velocity [m²/s²] overriding the message's; 0 uses the message's."""
     filter: str = 'kf'  # noqa: A003 (the node parameter's name)
     """The filter kind (:data:`kf_train.filters.FILTER_KINDS`): ``kf`` (exact, the
-    default), ``ekf`` (the same on these linear presets), ``ukf`` or ``pf``."""
+    default), ``ekf`` (the same on these linear presets), ``ukf``, ``pf`` (regularised)
+    or ``bootstrap-pf``."""
     ukf_alpha: float = DEFAULT_ALPHA
     """UKF sigma-point spread α > 0."""
     ukf_beta: float = DEFAULT_BETA

@@ -4,7 +4,8 @@ Floor 1, the filter mathematics: numpy only, no ROS, no command line.
 Kalman predict/update in Joseph form (:mod:`.kalman`), the motion models and THE
 white-noise Q(dt) (:mod:`.models`), the 2-state step in closed form
 (:mod:`.closed_form`) and the filter built on it (:mod:`.fast`), the EKF
-(:mod:`.ekf`), UKF (:mod:`.ukf`), particle filter (:mod:`.particle`), the χ²
+(:mod:`.ekf`), UKF (:mod:`.ukf`), particle filters (:mod:`.particle`, the bootstrap
+one, and :mod:`.regularised_pf`, the one that tracks range-bearing), the χ²
 distribution (:mod:`.chi2`), the input checks (:mod:`.validation`), time units
 (:mod:`.units`) and the family behind one interface (:mod:`.family`, make_filter).
 Other floors import from here, never from the modules.
@@ -18,7 +19,7 @@ from kf_train.filters.ekf import (
     wrap_angle)
 from kf_train.filters.family import (
     check_kind, DEFAULT_PARTICLES, Filter, FILTER_KINDS, FilterOptions, gaussian_model,
-    GaussianFilter, make_filter, ParticlePresetFilter)
+    GaussianFilter, make_filter, PARTICLE_KINDS, ParticlePresetFilter)
 from kf_train.filters.fast import FastRun, FastTrainFilter
 from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
 from kf_train.filters.models import (
@@ -29,6 +30,9 @@ from kf_train.filters.models import (
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
+from kf_train.filters.regularised_pf import (
+    kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
+    RegularisedSnapshot, tempering_step)
 from kf_train.filters.ukf import (
     batch_measurement, BatchMeasurement, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
     keep_positive_definite, MerweScaledSigmaPoints, robust_cholesky, SquareRoot, Transformed,
@@ -46,12 +50,15 @@ __all__ = [
     'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter', 'ExtendedModel',
     'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS', 'FilterOptions',
     'FunctionMeasurement', 'gaussian_model', 'GaussianFilter', 'kalman', 'KalmanFilter',
+    'kernel_draws', 'KERNELS',
     'keep_positive_definite', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'MAX_PARTICLES', 'MerweScaledSigmaPoints', 'noise_terms_function',
-    'NoiseModel', 'NS_PER_S', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
+    'NoiseModel', 'NS_PER_S', 'optimal_bandwidth', 'PARTICLE_KINDS', 'ParticleFilter',
+    'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
-    'ProcessNoise', 'psd_factor', 'RangeBearing', 'robust_cholesky', 'seconds_to_ns',
-    'Snapshot', 'SquareRoot', 'systematic_resample', 'Transformed', 'TWO_PI',
+    'ProcessNoise', 'psd_factor', 'RangeBearing', 'regularisation_jitter',
+    'RegularisedParticleFilter', 'RegularisedSnapshot', 'robust_cholesky', 'seconds_to_ns',
+    'Snapshot', 'SquareRoot', 'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI',
     'unscented_moments', 'unscented_predict', 'unscented_update', 'UnscentedModel', 'update',
     'UpdateResult', 'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',
     'WhiteNoiseAcceleration', 'wrap_angle',

@@ -11,7 +11,7 @@ import functools
 import math
 from typing import List, NamedTuple, Optional, Sequence, Tuple
 
-from kf_train.filters import chi2_mean_bounds
+from kf_train.filters import chi2_mean_bounds, PARTICLE_KINDS
 import numpy as np
 
 CONSISTENCY_CONFIDENCE = 0.99
@@ -128,7 +128,7 @@ def _filter_values(estimator) -> List[Tuple[str, str]]:
     regularisations = getattr(model, 'regularisations', None)
     if regularisations is not None:
         values.append(('ukf_regularisations', str(regularisations)))
-    if estimator.settings.filter == 'pf' and estimator.initialized:
+    if estimator.settings.filter in PARTICLE_KINDS and estimator.initialized:
         # The particles last stepped: those of the newest estimate.
         values += [('pf_ess', f'{model.filter.ess:.1f}'),
                    ('pf_resample_count', str(model.filter.resample_count))]

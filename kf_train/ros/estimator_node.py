@@ -68,7 +68,7 @@ Other interfaces:
   freedom).
 * ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``
   on the steady clock): one status ``<node name>: filter``, level OK or WARN, with the
-  preset, the filter (with ``ukf_regularisations``, or the particle filter's
+  preset, the filter (with ``ukf_regularisations``, or the particle filters'
   ``pf_ess`` and ``pf_resample_count``), input rate, last measurement age, counts
   (received, fused, rejected.<reason>, resets.<reason>; with a control input
   controls_received, controls.accepted / late / provisional,
@@ -87,12 +87,15 @@ Other interfaces:
 
 Filters (parameter ``filter``, fixed at start-up): ``kf`` (default, the exact linear
 filter), ``ekf`` (identical on these linear presets), ``ukf`` (Merwe sigma points,
-``ukf_alpha``/``ukf_beta``/``ukf_kappa``) or ``pf`` (bootstrap particle filter,
-``pf_particles``/``pf_seed``/``pf_resample_threshold``; reproducible bit for bit, an
-out-of-sequence replay included). Every one runs with the same input contract, gate
-(its own NIS), out-of-sequence replay, controls, resets and diagnostics. The particle
+``ukf_alpha``/``ukf_beta``/``ukf_kappa``), ``pf`` (regularised particle filter: the
+first update drawn from the measurement, progressive correction, a kernel move with a
+Metropolis-Hastings step after resampling) or ``bootstrap-pf`` (the plain bootstrap
+filter, for teaching); both particle filters take
+``pf_particles``/``pf_seed``/``pf_resample_threshold`` and are reproducible bit for bit,
+an out-of-sequence replay included. Every one runs with the same input contract, gate
+(its own NIS), out-of-sequence replay, controls, resets and diagnostics. The bootstrap
 filter needs ``process_noise_density`` > 0 on the train (Q = 0 otherwise: resampled
-particles never spread again).
+particles never spread again); ``pf`` does not (its move spreads them).
 
 Parameters: each is declared once, in :data:`kf_train.ros.estimator_params.PARAMETERS`
 (name, type, default, range or choices, live or not, unit, description); the README's

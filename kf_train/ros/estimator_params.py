@@ -63,9 +63,12 @@ PARAMETERS_FIXED = (
     ParamSpec(
         'filter', 'string', _CORE.filter,
         'The filter: kf (exact linear Kalman filter, default), ekf (the same on these linear '
-        'presets), ukf (unscented, ukf_alpha/beta/kappa) or pf (bootstrap particle filter, '
-        'pf_particles/pf_seed/pf_resample_threshold; give it process_noise_density > 0, or '
-        'its particles collapse).' + _FIXED, choices=FILTER_KINDS, live=False, group=_G_FIXED),
+        'presets), ukf (unscented, ukf_alpha/beta/kappa), pf (regularised particle filter: '
+        'first update from the measurement, progressive correction, Metropolis-Hastings '
+        'move) or bootstrap-pf (plain bootstrap particle filter, for teaching; give it '
+        'process_noise_density > 0, or its particles collapse); both take '
+        'pf_particles/pf_seed/pf_resample_threshold.' + _FIXED, choices=FILTER_KINDS,
+        live=False, group=_G_FIXED),
     _double('ukf_alpha', _CORE.ukf_alpha, 'UKF sigma-point spread alpha > 0.' + _FIXED,
             UKF_ALPHA_RANGE, live=False, group=_G_FIXED),
     _double('ukf_beta', _CORE.ukf_beta, 'UKF beta (2 is optimal for Gaussians).' + _FIXED,

@@ -26,7 +26,7 @@ _spec.loader.exec_module(bench)
 
 
 def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
-    """--quick measures rows 1 to 5 (one live rate) and prints and saves one table."""
+    """--quick measures rows 1 to 6 (one live rate) and prints and saves one table."""
     output = tmp_path / 'out' / 'bench.md'
     result = subprocess.run(
         [sys.executable, BENCH, '--quick', '--rates', '2000',
@@ -40,7 +40,7 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     table = [line for line in out.splitlines() if line.startswith('| ')]
     assert len([line for line in out.splitlines() if line.startswith('| Row |')]) == 1
     rows = {line.split('|')[1].strip() for line in table[1:]}
-    assert rows == {'1', '2', '3', '4', '5'}
+    assert rows == {'1', '2', '3', '4', '5', '6'}
     assert not [line for line in table if 'failed:' in line], table
     # Every live trial got through and exited; every start-up was measured.
     live = [line for line in table if line.startswith('| 4 |')]
@@ -48,6 +48,8 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     assert all('exit 0' in line for line in live), live
     startup = [line for line in table if line.startswith('| 5 |')]
     assert len(startup) == 4 and all('peak RSS' in line for line in startup), startup
+    filters = [line for line in table if line.startswith('| 6 |')]
+    assert len(filters) == 6 and all('× the UKF' in line for line in filters), filters
     # The file holds the header and the same table.
     saved = output.read_text()
     assert saved.splitlines()[0].startswith('kf_train benchmark, ')

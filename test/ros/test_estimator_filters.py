@@ -1,5 +1,5 @@
 """
-The estimator's ``filter`` parameter: kf, ekf, ukf and pf on every live preset.
+The estimator's ``filter`` parameter: kf, ekf, ukf, pf and bootstrap-pf on every live preset.
 
 Core level: the UKF equals the KF to 1e-9 on every preset (the models are linear),
 with controls arriving late and out-of-sequence measurements; the particle filter is
@@ -13,7 +13,7 @@ import statistics
 
 from kf_train.estimator import (
     EstimatorSettings, LIVE_PRESETS, Rejected, resolve_preset, StreamEstimator)
-from kf_train.filters import FILTER_KINDS
+from kf_train.filters import FILTER_KINDS, PARTICLE_KINDS
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 import numpy as np
@@ -24,8 +24,9 @@ from ros_helpers import assert_startup_refused
 EPOCH_NS = 1_700_000_000_000_000_000
 # Probability that a correct filter fails any one test's k-sigma checks.
 FALSE_ALARM = 1e-3
-# A particle filter on the train needs process noise: with Q = 0 resampled particles
-# never spread again (the node's docs say so too).
+# The bootstrap particle filter on the train needs process noise: with Q = 0 resampled
+# particles never spread again (the node's docs say so too). The regularised pf does
+# not (test_regularised_pf_needs_no_process_noise_on_the_train).
 PF_Q = 0.01
 
 
@@ -111,16 +112,17 @@ def test_ukf_and_ekf_equal_kf_on_every_preset(preset):
                 assert b.update.nis == pytest.approx(a.update.nis, rel=1e-9, abs=1e-12)
 
 
+@pytest.mark.parametrize('kind', PARTICLE_KINDS)
 @pytest.mark.parametrize('preset', LIVE_PRESETS)
-def test_pf_runs_every_preset_reproducibly(preset):
-    """The particle filter runs on every preset, and two runs agree bit for bit."""
+def test_pf_runs_every_preset_reproducibly(preset, kind):
+    """Both particle filters run on every preset, and two runs agree bit for bit."""
     stamps, z, controls, position = _stream(preset, 40, 2)
     order = _arrival_order(40)
     q = PF_Q if resolve_preset(preset).state_names == ('position', 'velocity') else 0.0
     runs = []
     for _ in range(2):
         estimator = StreamEstimator(EstimatorSettings(
-            preset=preset, filter='pf', pf_particles=500, pf_seed=7, history_s=3.0,
+            preset=preset, filter=kind, pf_particles=500, pf_seed=7, history_s=3.0,
             process_noise_density=q))
         steps = _feed(estimator, stamps, z, controls, order)
         runs.append((steps, estimator.state))
@@ -131,19 +133,53 @@ def test_pf_runs_every_preset_reproducibly(preset):
         assert np.array_equal(a.x, b.x) and np.array_equal(a.predicted_P, b.predicted_P)
 
 
-def test_pf_out_of_sequence_replay_equals_in_order_bit_for_bit():
+@pytest.mark.parametrize('kind', PARTICLE_KINDS)
+def test_pf_out_of_sequence_replay_equals_in_order_bit_for_bit(kind):
     """A rewind restores the particles and the generator: replay = in-order arrival."""
     stamps, z, _, _ = _stream('train', 80, 3)
     states = []
     for order in (list(range(80)), _arrival_order(80)):
         estimator = StreamEstimator(EstimatorSettings(
-            filter='pf', pf_particles=300, pf_seed=11, history_s=1.0,
+            filter=kind, pf_particles=300, pf_seed=11, history_s=1.0,
             process_noise_density=PF_Q))
         _feed(estimator, stamps, z, None, order)
         states.append(estimator.state)
     assert estimator.stats().out_of_sequence > 0
     assert np.array_equal(states[0][0], states[1][0])
     assert np.array_equal(states[0][1], states[1][1])
+
+
+def test_regularised_pf_needs_no_process_noise_on_the_train():
+    """
+    Train, Q = 0: pf agrees with the exact KF; the bootstrap filter's cloud collapses.
+
+    With Q = 0 the posterior is the KF's N(x, P). If pf's cloud were N_eff independent
+    draws from it, N_eff·(x̂ − x)ᵀ P⁻¹ (x̂ − x) ~ χ²(2) and the variance ratio of each
+    state would be 1 ± √(2 / N_eff) (1σ). Conservatively N_eff ≥ 100 of the 2000
+    particles (resampling at ESS < 1000, Metropolis-Hastings moves accepted ~70 %, and
+    150 steps of path degeneracy); a false-alarm probability of 1e-4 then allows
+    d ≤ χ²₂(1 − 1e-4)/100 = 0.184 and ratios within 1 ± 4√(2/100) = [0.43, 1.57].
+    The bootstrap filter ends with variances ~1e-25 of the KF's (no noise re-spreads
+    its copies): the same bounds fail it by orders of magnitude.
+    """
+    n, effective = 150, 100
+    stamps, z, _, _ = _stream('train', n, 5)
+    d_max = -2.0 * np.log(1e-4) / effective          # χ²₂ quantile: −2 ln(α)
+    ratio_tolerance = 4.0 * np.sqrt(2.0 / effective)
+    states = {}
+    for kind in ('kf', 'pf', 'bootstrap-pf'):
+        estimator = StreamEstimator(EstimatorSettings(
+            filter=kind, pf_particles=2000, pf_seed=3, process_noise_density=0.0,
+            history_s=1.0))
+        _feed(estimator, stamps, z, None, range(n))
+        states[kind] = estimator.state
+    x, P = states['kf']
+    for kind, passes in (('pf', True), ('bootstrap-pf', False)):
+        x_k, P_k = states[kind]
+        d = float((x_k - x) @ np.linalg.solve(P, x_k - x))
+        ratios = np.diag(P_k) / np.diag(P)
+        ok = d <= d_max and np.all(np.abs(ratios - 1.0) <= ratio_tolerance)
+        assert ok == passes, (kind, d, ratios)
 
 
 def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
@@ -169,7 +205,7 @@ def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
 
 
 @pytest.mark.parametrize('name, value, words', [
-    ('filter', 'foo', ['filter', 'kf', 'pf']),
+    ('filter', 'foo', ['filter', 'kf', 'pf', 'bootstrap-pf']),
     ('pf_particles', 0, ['pf_particles', '1']),
     ('pf_resample_threshold', 1.5, ['pf_resample_threshold']),
     ('ukf_alpha', 0.0, ['ukf_alpha']),
@@ -205,7 +241,7 @@ def _node_run(ros_context, kind: str, stamps, z, order):
         node._on_diagnostics_timer()
         diagnostics = {v.key: v.value for v in node._last_diagnostics.status[0].values}
         assert diagnostics['filter'] == kind
-        assert ('pf_ess' in diagnostics) == (kind == 'pf')
+        assert ('pf_ess' in diagnostics) == (kind in PARTICLE_KINDS)
         assert ('ukf_regularisations' in diagnostics) == (kind == 'ukf')
         return node.estimator.state
     finally:
@@ -232,7 +268,7 @@ def test_each_kind_converges_in_the_node(ros_context):
 
 
 @pytest.mark.parametrize('assignment, words', [
-    ('filter:=foo', ['filter', 'kf', 'ukf', 'pf']),
+    ('filter:=foo', ['filter', 'kf', 'ukf', 'pf', 'bootstrap-pf']),
     ('pf_particles:=0', ['pf_particles', '1', '1000000']),
 ])
 def test_invalid_filter_parameter_at_startup(domain_id, assignment, words):

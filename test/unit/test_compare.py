@@ -41,6 +41,7 @@ def test_small_range_bearing_comparison_matches_an_independent_recomputation():
         assert s.seconds_per_step > 0.0
         assert s.rmse_per_row_m.shape == comparison.t_s.shape
     assert 'resample_count' in comparison.summaries[2].diagnostics
+    assert comparison.summaries[2].diagnostics['measurement_initialisations'] == 3
 
 
 @pytest.mark.parametrize('runs,dim', [(1, 1), (3, 4), (100, 4), (200, 2)])
@@ -77,6 +78,9 @@ def test_comparisons_are_reproducible():
         np.testing.assert_array_equal(x.anees_per_row, y.anees_per_row)
     c = run_comparison('range-bearing', runs=2, seed=4, options=SMALL, initial='preset')
     assert c.summaries[2].rmse_position_m != a.summaries[2].rmse_position_m
+    d, e = (run_comparison('range-bearing', runs=2, seed=3, options=SMALL,
+                           kinds=['bootstrap-pf']) for _ in range(2))
+    np.testing.assert_array_equal(d.summaries[0].anees_per_row, e.summaries[0].anees_per_row)
 
 
 def test_nees_is_infinite_for_a_singular_covariance():
@@ -90,14 +94,16 @@ def test_command_prints_and_writes_the_figure_and_curves(tmp_path, capsys):
     assert cli.main(['compare', '--preset', 'range-bearing', '--runs', '2',
                      '--particles', '100', '--seed', '7', '--output-dir', str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    for text in ('ekf', 'ukf', 'pf', 'RMSE pos [m]', 'mean ANEES', 'µs/row'):
+    for text in ('ekf', 'ukf', 'pf', 'RMSE pos [m]', 'mean ANEES', 'µs/row',
+                 'measurement_initialisations 2'):
         assert text in out
     png = tmp_path / 'compare-range-bearing.png'
     assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     header = (tmp_path / 'compare-range-bearing.csv').read_text().splitlines()[0]
     assert header == ('t,rmse_position_ekf,anees_ekf,rmse_position_ukf,anees_ukf,'
                       'rmse_position_pf,anees_pf')
-    figure = comparison_figure(run_comparison('robot', runs=2, options=SMALL))
+    figure = comparison_figure(run_comparison('robot', runs=2, options=SMALL,
+                                              kinds=['kf', 'pf', 'bootstrap-pf']))
     assert len(figure.axes) == 2
 
 

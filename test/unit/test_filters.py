@@ -5,7 +5,8 @@ import os
 from kf_train.batch import run_filter_series, run_series, SeriesError, time_steps_s
 from kf_train.cli.replay import main as replay_main
 from kf_train.filters import (
-    FILTER_KINDS, FilterOptions, gaussian_model, GaussianFilter, make_filter, UpdateResult)
+    FILTER_KINDS, FilterOptions, gaussian_model, GaussianFilter, make_filter, PARTICLE_KINDS,
+    UpdateResult)
 from kf_train.presets import load_preset, PRESET_NAMES
 from kf_train.sim import scenario_for_preset
 import numpy as np
@@ -54,7 +55,7 @@ def test_every_kind_has_the_same_interface(name):
     n, m = preset.dim_x, preset.dim_z
     for kind in _kinds(preset):
         filt = _filter(preset, kind)
-        if kind != 'pf':
+        if kind not in PARTICLE_KINDS:
             np.testing.assert_array_equal(filt.mean, preset.initial_state)
         for k in range(dt.shape[0]):
             u_k = None if u is None else u[k]
@@ -146,23 +147,29 @@ def test_reset_restarts_every_kind():
                 filt.update(z[k])
             runs.append(filt.mean)
         np.testing.assert_array_equal(runs[0], runs[1])
-    pf = _filter(preset, 'pf')
-    pf.reset(seed=99)
-    assert pf.seed == 99
+    for kind in PARTICLE_KINDS:
+        pf = _filter(preset, kind)
+        pf.reset(seed=99)
+        assert pf.seed == 99
 
 
 def test_make_filter_checks_its_arguments():
     """Unknown kinds, kf on a nonlinear preset and bad tuning raise ValueError."""
     linear, nonlinear = load_preset('train'), load_preset('range-bearing')
     for call, message in [
-            (lambda: make_filter(linear, 'lkf'), 'filter must be one of kf, ekf, ukf, pf'),
+            (lambda: make_filter(linear, 'lkf'),
+             'filter must be one of kf, ekf, ukf, pf, bootstrap-pf'),
             (lambda: make_filter(nonlinear, 'kf'), "filter 'kf' needs a linear one"),
             (lambda: make_filter(linear, 'pf', particles=0), 'n_particles must be'),
             (lambda: make_filter(linear, 'pf', seed=-3), 'seed must be'),
             (lambda: make_filter(linear, 'ukf', alpha=-1.0), 'alpha must be > 0'),
             (lambda: make_filter(nonlinear, 'ukf', kappa=-4.0), 'kappa must be > -n = -4'),
+            (lambda: make_filter(linear, 'bootstrap-pf', particles=0), 'n_particles must be'),
+            (lambda: make_filter(linear, 'bootstrap-pf', roughening=-1.0), 'roughening must'),
             (lambda: make_filter(linear, 'pf', bogus=1), 'bogus'),
-            (lambda: gaussian_model(linear, 'pf'), 'no \\(x, P\\) model')]:
+            (lambda: gaussian_model(linear, 'pf'), 'no \\(x, P\\) model'),
+            (lambda: gaussian_model(linear, 'bootstrap-pf'),
+             "make_filter\\(preset, 'bootstrap-pf'\\)")]:
         with pytest.raises((ValueError, TypeError), match=message):
             call()
 
@@ -216,35 +223,36 @@ def _read(path):
 
 @pytest.mark.parametrize('name', PRESET_NAMES)
 def test_replay_filter_option_on_every_preset(name, tmp_path):
-    """--filter ekf|ukf|pf: the default's columns; the UKF equals it where linear."""
+    """--filter ekf|ukf|pf|bootstrap-pf: the default's columns; UKF = it where linear."""
     source = tmp_path / 'in.csv'
     _write_input(source, name)
     default = tmp_path / 'default.csv'
     assert replay_main(['--preset', name, str(source), '-o', str(default)]) == 0
     header, values = _read(default)
-    for kind in ('ekf', 'ukf', 'pf'):
+    for kind in ('ekf', 'ukf') + PARTICLE_KINDS:
         out = tmp_path / f'{kind}.csv'
         assert replay_main(['--preset', name, str(source), '-o', str(out), '--filter', kind,
                             '--particles', '200', '--seed', '3']) == 0
         got_header, got = _read(out)
         assert got_header == header
         assert got.shape == values.shape and np.all(np.isfinite(got))
-        if kind != 'pf' and (kind == 'ekf' or name != 'range-bearing'):
+        if kind not in PARTICLE_KINDS and (kind == 'ekf' or name != 'range-bearing'):
             np.testing.assert_allclose(got, values, rtol=1e-9, atol=1e-9)
 
 
 def test_replay_pf_is_reproducible_and_seeded(tmp_path):
-    """The same --seed writes the same file; another seed another one."""
+    """The same --seed writes the same file; another seed another one (both PFs)."""
     source = tmp_path / 'in.csv'
     _write_input(source, 'range-bearing')
-    texts = []
-    for seed in ('1', '1', '2'):
-        out = tmp_path / f'pf{len(texts)}.csv'
-        assert replay_main(['--preset', 'range-bearing', str(source), '-o', str(out),
-                            '--filter', 'pf', '--particles', '300', '--seed', seed,
-                            '--roughening', '0.1']) == 0
-        texts.append(out.read_text())
-    assert texts[0] == texts[1] != texts[2]
+    for kind in PARTICLE_KINDS:
+        texts = []
+        for seed in ('1', '1', '2'):
+            out = tmp_path / f'{kind}{len(texts)}.csv'
+            assert replay_main(['--preset', 'range-bearing', str(source), '-o', str(out),
+                                '--filter', kind, '--particles', '300', '--seed', seed,
+                                '--roughening', '0.1']) == 0
+            texts.append(out.read_text())
+        assert texts[0] == texts[1] != texts[2]
 
 
 def test_replay_filter_errors(tmp_path, capsys):
@@ -252,9 +260,10 @@ def test_replay_filter_errors(tmp_path, capsys):
     source = tmp_path / 'in.csv'
     _write_input(source, 'range-bearing')
     out = tmp_path / 'out.csv'
-    assert replay_main(['--preset', 'range-bearing', str(source), '-o', str(out),
-                        '--filter', 'pf', '--smooth']) == 1
-    assert '--smooth needs a Gaussian filter' in capsys.readouterr().err
+    for kind in PARTICLE_KINDS:
+        assert replay_main(['--preset', 'range-bearing', str(source), '-o', str(out),
+                            '--filter', kind, '--smooth']) == 1
+        assert '--smooth needs a Gaussian filter' in capsys.readouterr().err
     assert replay_main(['--preset', 'range-bearing', str(source), '-o', str(out),
                         '--filter', 'kf']) == 1
     assert "filter 'kf' needs a linear one" in capsys.readouterr().err

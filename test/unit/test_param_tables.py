@@ -259,7 +259,8 @@ def test_params_files_and_overrides_make_the_nodes_configuration():
     ('initial_state:=[1.0]', 'invalid parameter: initial_state must have length 2, got 1'),
     ('qos_reliability:=sometimes', 'invalid parameter: qos_reliability must be one of '
      "best_effort, reliable, got 'sometimes'"),
-    ('filter:=foo', "invalid parameter: filter must be one of kf, ekf, ukf, pf, got 'foo'"),
+    ('filter:=foo', 'invalid parameter: filter must be one of kf, ekf, ukf, pf, bootstrap-pf, '
+     "got 'foo'"),
     ('initialization:=bogus', 'invalid parameter: initialization must be one of '
      "first_measurement, prior, got 'bogus'"),
     ("frame_id:=''", 'invalid parameter: frame_id must not be empty'),

@@ -95,9 +95,9 @@ def test_both_bank_strategies_equal_each_object_alone(monkeypatch, name, split):
     _check_against_each_alone(result, preset, t, z, u, ids)
 
 
-@pytest.mark.parametrize('kind', ['ukf', 'pf'])
+@pytest.mark.parametrize('kind', ['ukf', 'pf', 'bootstrap-pf'])
 def test_bank_of_other_filters_equals_each_object_alone(kind):
-    """--filter ukf/pf: object by object, the particle filter reseeded per object."""
+    """--filter ukf/pf/bootstrap-pf: object by object, a particle filter reseeded per object."""
     preset = load_preset('car')
     t, z, u, ids = _fleet(preset, [6, 3, 9], 3)
     filt = make_filter(preset, kind, FilterOptions(particles=200, seed=5))

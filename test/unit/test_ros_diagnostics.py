@@ -104,11 +104,12 @@ def test_filter_specific_values():
     """UKF: its regularisations; particle filter: ESS and resamplings once initialised."""
     ukf = dict(filter_status(_estimator(filter='ukf'), COUNTS, ACTIVE, 1.0, []).values)
     assert ukf['filter'] == 'ukf' and ukf['ukf_regularisations'] == '0'
-    pf = _estimator(filter='pf', pf_particles=200, process_noise_density=0.1)
-    values = dict(filter_status(pf, COUNTS, ACTIVE, 1.0, []).values)
-    assert float(values['pf_ess']) <= 200 and int(values['pf_resample_count']) >= 0
-    fresh = StreamEstimator(dataclasses.replace(DEFAULTS, filter='pf'))
-    assert 'pf_ess' not in dict(filter_status(fresh, COUNTS, ACTIVE, 1.0, []).values)
+    for kind in ('pf', 'bootstrap-pf'):
+        pf = _estimator(filter=kind, pf_particles=200, process_noise_density=0.1)
+        values = dict(filter_status(pf, COUNTS, ACTIVE, 1.0, []).values)
+        assert float(values['pf_ess']) <= 200 and int(values['pf_resample_count']) >= 0
+        fresh = StreamEstimator(dataclasses.replace(DEFAULTS, filter=kind))
+        assert 'pf_ess' not in dict(filter_status(fresh, COUNTS, ACTIVE, 1.0, []).values)
 
 
 def test_nis_bounds_are_the_chi2_bounds():
