@@ -507,8 +507,9 @@ def _parser() -> argparse.ArgumentParser:
                'smoothed_<state> and var_smoothed_<state> with --smooth. Presets: '
                + ', '.join(available_presets()) + '. Bad input names the line and '
                'column, exits 1 and writes nothing.')
-    parser.add_argument('input', metavar='INPUT.csv', nargs='?',
-                        help="measurements ('-' reads standard input)")
+    parser.add_argument('input', metavar='INPUT.csv|BAG', nargs='?',
+                        help="measurements ('-' reads standard input), or a rosbag2 bag "
+                             '(a directory, .mcap or .db3): see the bag options')
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME', choices=available_presets(),
                         help='a shipped preset: %(choices)s')
@@ -528,6 +529,18 @@ def _parser() -> argparse.ArgumentParser:
                         help='run this filter of the family row by row (default: the '
                              "preset's exact filter, vectorised where linear): %(choices)s")
     add_filter_options(parser)
+    bag = parser.add_argument_group(
+        "bag replay (INPUT a rosbag2 directory, .mcap or .db3): the estimator node's own "
+        'session and parameters; --output X.csv, or a directory or X.mcap for a bag')
+    bag.add_argument('--params-file', metavar='FILE', action='append',
+                     help='a ROS params file (node estimator); may be repeated')
+    bag.add_argument('-p', dest='parameter', metavar='NAME:=VALUE', action='append',
+                     help='set one node parameter, as ros2 run ... -p')
+    bag.add_argument('--topic', metavar='NAME', default=None,
+                     help="the measurement topic (default: 'measurement' resolved in the "
+                          'bag, else the only one of the expected type)')
+    bag.add_argument('--control-topic', metavar='NAME', default=None,
+                     help="the control topic, for presets with one (default: 'control')")
     return parser
 
 
@@ -539,10 +552,17 @@ def main(argv: Optional[List[str]] = None) -> int:
         for name in available_presets():
             print(f'{name:22s} {load_preset(name).description}')
         return EXIT_OK
+    if args.input is not None and args.input != '-' and (
+            is_bag(args.input) or (args.preset is None and args.config is None
+                                   and not args.input.lower().endswith('.csv'))):
+        return _bag_main(parser, args)
     if args.preset is None and args.config is None:
         parser.error('one of --preset NAME or --config FILE is required')
     if args.input is None or args.output is None:
         parser.error('INPUT.csv and --output OUTPUT.csv are required')
+    for option in ('params_file', 'parameter', 'topic', 'control_topic'):
+        if getattr(args, option):
+            parser.error(f"--{option.replace('_', '-')} applies to a bag input only")
     for option, value in (('--horizon', args.horizon), ('--t0', args.t0)):
         if value is not None and not np.isfinite(value):
             parser.error(f'{option} must be a finite number, got {value}')
@@ -564,6 +584,30 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'kf-train replay: {summary.rows} rows with preset {preset.name} -> '
               f'{args.output} ({summary.seconds:.3f} s)', file=sys.stderr)
     return EXIT_OK
+
+
+def is_bag(path: str) -> bool:
+    """Return whether ``path`` names a bag (a directory, a .mcap or .db3 file), not a CSV."""
+    return os.path.isdir(path) or path.endswith(('.mcap', '.db3'))
+
+
+def bag_replay_module():
+    """Return kf_train.cli.bag_replay (imported when used: it needs rosbags)."""
+    from kf_train.cli import bag_replay
+    return bag_replay
+
+
+def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """Run ``kf-train replay BAG``: the node's parameters, not a preset's options."""
+    if args.output is None:
+        parser.error('a bag input needs --output X.csv, X.mcap or DIR')
+    for option in ('preset', 'config', 'horizon', 'filter'):
+        if getattr(args, option) is not None:
+            parser.error(f'--{option} applies to a CSV input; for a bag give node parameters '
+                         f'(-p preset:=NAME, -p horizon_s:=S, -p filter:=KIND)')
+    if args.smooth:
+        parser.error('--smooth applies to a CSV input only')
+    return bag_replay_module().bag_main(args)
 
 
 if __name__ == '__main__':

@@ -1,7 +1,14 @@
-"""Floor 3, input and output: the exact bulk CSV codec."""  # noqa: A005 (see below)
+"""
+Floor 3, input and output: the exact bulk CSV codec; bags (``bagio``, ``bagio_output``).
+
+The bag modules need ``rosbags`` (the extra ``[bag]``): they are imported when used
+(``from kf_train.io import bagio``), not here.
+"""  # noqa: A005 (see below)
 
 # The name shadows the standard library's io only for code run with kf_train/ itself on
 # sys.path, which nothing does: every import of this package is absolute (kf_train.io).
+
+import importlib
 
 from kf_train.io import csvio
 from kf_train.io.csvio import (
@@ -9,6 +16,15 @@ from kf_train.io.csvio import (
     parse_numbers, parse_rows, split_fields)
 
 __all__ = [
-    'BLOCK_FIELDS', 'BLOCK_ROWS', 'csvio', 'Fields', 'format_labels', 'format_rows',
-    'format_values', 'parse_labels', 'parse_numbers', 'parse_rows', 'split_fields',
+    'bagio', 'bagio_output', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'csvio', 'Fields', 'format_labels',
+    'format_rows', 'format_values', 'parse_labels', 'parse_numbers', 'parse_rows', 'split_fields',
 ]
+
+_LAZY = ('bagio', 'bagio_output')
+
+
+def __getattr__(name: str):
+    """Import the bag modules on first use (PEP 562): they need rosbags."""
+    if name in _LAZY:
+        return importlib.import_module(f'kf_train.io.{name}')
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

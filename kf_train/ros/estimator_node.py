@@ -8,7 +8,9 @@ message stamps, never from arrival times. After each fused measurement it publis
 ``estimate`` (nav_msgs/Odometry, stamped with the newest fused stamp) and
 ``prediction`` (the state ``horizon_s`` ahead, stamped that stamp + horizon_s).
 All the mathematics, and every check of the input contract, is in
-:mod:`kf_train.estimator.estimator`; this node counts, logs and publishes. (An output
+:mod:`kf_train.estimator.estimator`; what the node does with its input (counts, logs,
+resets) is :mod:`kf_train.ros.session`, shared with ``kf-train replay BAG``; this node
+publishes. (An output
 topic without subscribers is not published at all: cheaper, and the same to anyone.)
 
 Presets (parameter ``preset``, fixed at start-up): the filter of a seed, ``train``
@@ -45,7 +47,7 @@ Robustness (see the core module for the exact rules):
 
 * Rejected measurements (bad numbers, zero/duplicate/stale/future stamps, wrong
   frame, χ² outliers) leave the filter unchanged; they are counted by reason in
-  ``/diagnostics`` and logged at most once per ``WARN_THROTTLE_S`` per reason.
+  ``/diagnostics`` and logged at most once per ``session.WARN_THROTTLE_S`` per reason.
 * Out-of-sequence measurements younger than ``history_s`` are fused by rewinding and
   replaying; the estimate is then republished at the newest stamp, corrected.
 * Resets, each logged and counted by reason: ``~/reset`` (manual), ``~/set_state``,
@@ -107,22 +109,19 @@ them). Noise and gate changes apply from the next measurement and restart the NI
 window.
 """
 
-import collections
-import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
-from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
+from kf_train.estimator import NS_PER_S
 from kf_train.ros import messages
-from kf_train.ros.diagnostics import Activity, filter_status, NodeCounts
 from kf_train.ros.estimator_params import (
-    changed_config, DEFAULTS, estimator_config, FRAME_PARAMETERS, NOISE_AND_GATE, PARAMETERS)
+    changed_config, DEFAULTS, estimator_config, FRAME_PARAMETERS, PARAMETERS)
 from kf_train.ros.param_spec import ParameterError
 from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.runner import executor_option, run, StartupError
+from kf_train.ros.session import EstimatorSession, Measurement
 from nav_msgs.msg import Odometry
-import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -134,7 +133,6 @@ QOS_DEPTH = 10
 """History depth of the publishers and of ~/set_state."""
 QOS_RELIABILITIES = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                      'reliable': ReliabilityPolicy.RELIABLE}
-WARN_THROTTLE_S = 5.0
 
 
 class EstimatorNode(Node):
@@ -144,33 +142,31 @@ class EstimatorNode(Node):
         """Declare the parameters, build the filter and wire the topics."""
         super().__init__('estimator', **kwargs)
         try:
-            self.config = estimator_config(declare_table(self, PARAMETERS))
-            self.estimator = StreamEstimator(self.config.settings)
+            self.session = EstimatorSession(estimator_config(declare_table(self, PARAMETERS)),
+                                            time.monotonic, self._log)
         except ParameterError as error:
             raise StartupError(str(error)) from None
         except ValueError as error:
             raise StartupError(f'invalid parameter: {error}') from None
-        self.preset = self.estimator.preset
-        self.received = 0
-        self.fused = 0
-        self.corrections = 0
-        """Estimates republished because a late control changed them."""
-        self.controls_received = 0
-        self.controls_rejected = 0
-        self.rejected = 0
-        self.set_state_refused = 0
-        self.innovations = 0
-        self._nis = collections.deque(maxlen=self.config.options.nis_window)
-        self._warned = {}
-        self._start_mono = self._tick_mono = time.monotonic()
-        self._last_fused_mono = None
-        self._received_at_tick = self._fused_at_tick = 0
-        self._timed_out = False
-        self._last_clock_ns = 0
+        self.estimator = self.session.estimator
+        self.preset = self.session.preset
         self._last_diagnostics = None
         self._create_interfaces()
         watch_changes(self, lambda changes: changed_config(self.config, changes),
                       self._apply_changes)
+
+    # What the session counts, under the names the node has always had.
+    config = property(lambda self: self.session.config)
+    received = property(lambda self: self.session.received)
+    fused = property(lambda self: self.session.fused)
+    rejected = property(lambda self: self.session.rejected)
+    corrections = property(lambda self: self.session.corrections)
+    controls_received = property(lambda self: self.session.controls_received)
+    controls_rejected = property(lambda self: self.session.controls_rejected)
+    set_state_refused = property(lambda self: self.session.set_state_refused)
+    innovations = property(lambda self: self.session.innovations)
+    _nis = property(lambda self: self.session.nis)
+    _timed_out = property(lambda self: self.session.timed_out)
 
     @property
     def frame_id(self) -> str:
@@ -181,6 +177,13 @@ class EstimatorNode(Node):
     def child_frame_id(self) -> str:
         """Return child_frame_id of estimate and prediction."""
         return self.config.options.child_frame_id
+
+    def _log(self, level: str, text: str) -> None:
+        """Log a line of the session (rclpy wants one severity per call site: two calls)."""
+        if level == 'info':
+            self.get_logger().info(text)
+        else:
+            self.get_logger().warning(text)
 
     def _create_interfaces(self) -> None:
         """Create the subscriptions, publishers, service and diagnostics timer."""
@@ -202,7 +205,7 @@ class EstimatorNode(Node):
             kind, _, self._read_control = messages.CONTROL_MESSAGES[control]
             self.control_subscription = self.create_subscription(
                 kind, 'control', self._on_control, qos)
-        self.measures_velocity = self.preset.measurement_names == ('position', 'velocity')
+        self.measures_velocity = self.session.measures_velocity
         # A position measurement arrives serialised and only its four fields are read
         # (messages.measurement_from_serialized): rclpy's deserialisation would cost
         # more than the whole filter step.
@@ -225,13 +228,8 @@ class EstimatorNode(Node):
 
     def _apply_changes(self, changes: dict) -> None:
         """Apply a change rclpy has stored (the on-set callback validated it)."""
-        old = self.config
-        self.config = changed_config(old, changes)
+        old = self.session.apply_changes(changes)
         options = self.config.options
-        if self.config.settings != old.settings:
-            self.estimator.reconfigure(self.config.settings)
-        if options.nis_window != old.options.nis_window:
-            self._nis = collections.deque(self._nis, maxlen=options.nis_window)
         if options.diagnostics_period_s != old.options.diagnostics_period_s:
             self._diagnostics_timer.timer_period_ns = int(
                 options.diagnostics_period_s * NS_PER_S)
@@ -241,136 +239,50 @@ class EstimatorNode(Node):
             for writer in (self._estimate_writer, self._prediction_writer):
                 writer.set_frames(options.frame_id, options.child_frame_id)
             self._innovation_writer.set_frame(options.frame_id)
-        if NOISE_AND_GATE & changes.keys():
-            self._nis.clear()  # the old NIS values judged the old tuning
 
     # -- measurements -----------------------------------------------------------------
 
     def _on_measurement(self, msg) -> None:
         """Fuse one measurement and publish the estimate, the prediction, the innovation."""
-        self.received += 1
         if self.measures_velocity:
             read = messages.from_odometry_msg(msg)
-            stamp_ns = read.stamp_ns
-            velocity = {'velocity_mps': read.velocity_mps,
-                        'velocity_variance_m2s2': read.velocity_variance_m2s2}
-            position, variance, frame_id = (read.position_m, read.position_variance_m2,
-                                            read.frame_id)
+            measurement = Measurement(read.stamp_ns, read.frame_id, read.position_m,
+                                      read.position_variance_m2, read.velocity_mps,
+                                      read.velocity_variance_m2s2)
         else:
-            read = (messages.measurement_from_serialized(msg) if type(msg) is bytes
-                    else messages.from_measurement_msg(msg))
-            stamp_ns, position, variance, frame_id = (read.stamp_ns, read.position_m,
-                                                      read.variance_m2, read.frame_id)
-            velocity = {}
-        now_ns = self._check_clock()
-        try:
-            step = self.estimator.process(stamp_ns, position, variance, frame_id=frame_id,
-                                          now_ns=now_ns, **velocity)
-        except Rejected as rejection:
-            self.rejected += 1
-            self._warn_rejection(rejection.reason, str(rejection))
-            if rejection.update is not None:
-                self._publish_innovation(stamp_ns, rejection.update)
-            if rejection.reset is not None:
-                self._after_reset(rejection.reset, str(rejection))
-            return
-        if step.reset is not None:
-            self._after_reset(step.reset, f'measurement at {stamp_ns} ns initialises it')
-        if not self._publish_step(step):
-            return
-        self.fused += 1
-        self._last_fused_mono = time.monotonic()
-        if step.update is not None:
-            self._publish_innovation(step.measurement_stamp_ns, step.update)
-            self._nis.append(step.update.nis)
+            measurement = (messages.measurement_from_serialized(msg) if type(msg) is bytes
+                           else messages.from_measurement_msg(msg))
+        self._publish(self.session.on_measurement(measurement,
+                                                  self.get_clock().now().nanoseconds))
 
     def _on_control(self, msg) -> None:
         """Take one control; publish the estimate again if it corrected it."""
-        self.controls_received += 1
-        control = self._read_control(msg)
-        now_ns = self._check_clock()
-        try:
-            step = self.estimator.add_control(control.stamp_ns, [control.value], now_ns=now_ns)
-        except Rejected as rejection:
-            self.controls_rejected += 1
-            self._warn_rejection('control.' + rejection.reason, str(rejection), 'control')
-            return
-        if step is not None and self._publish_step(step):
-            self.corrections += 1
+        self._publish(self.session.on_control(self._read_control(msg),
+                                              self.get_clock().now().nanoseconds))
 
-    def _publish_step(self, step) -> bool:
-        """Publish estimate and prediction; on a non-finite number reset instead, False."""
-        # One test for all four: 0·v is 0 for every finite v, NaN for NaN and ±inf.
-        if not 0.0 * (sum(step.x.tolist()) + sum(step.P.ravel().tolist())
-                      + sum(step.predicted_x.tolist())
-                      + sum(step.predicted_P.ravel().tolist())) == 0.0 and not (
-                np.isfinite(step.x).all() and np.isfinite(step.P).all()
-                and np.isfinite(step.predicted_x).all()
-                and np.isfinite(step.predicted_P).all()):
-            # The core never produces this; if it ever did, nothing non-finite leaves.
-            self.estimator.reset('non_finite')
-            self._after_reset('non_finite', 'a non-finite state was not published')
-            return False
+    def _publish(self, outputs) -> None:
+        """Publish what the session returned: estimate and prediction, innovation."""
         # A topic nobody subscribes to is not published: a publish costs ~20 µs, the
         # count ~1 µs, and a message without a matched reader would go nowhere anyway.
-        if self.estimate_pub.get_subscription_count():
-            self.estimate_pub.publish(self._estimate_writer.fill(step.stamp_ns, step.x, step.P))
-        if self.prediction_pub.get_subscription_count():
-            self.prediction_pub.publish(self._prediction_writer.fill(
-                step.prediction_stamp_ns, step.predicted_x, step.predicted_P))
-        return True
-
-    def _publish_innovation(self, stamp_ns: int, update) -> None:
-        """Publish one innovation record (first measurement component)."""
-        self.innovations += 1
-        if not self.innovation_pub.get_subscription_count():
-            return  # (see _publish_step)
-        self.innovation_pub.publish(self._innovation_writer.fill(
-            stamp_ns, update.innovation[0], update.innovation_covariance[0, 0], update.nis))
-
-    def _warn_rejection(self, reason: str, text: str, what: str = 'measurement') -> None:
-        """Log a rejection, at most once per WARN_THROTTLE_S for each reason."""
-        now = time.monotonic()
-        last, suppressed = self._warned.get(reason, (-math.inf, 0))
-        if now - last < WARN_THROTTLE_S:
-            self._warned[reason] = (last, suppressed + 1)
-            return
-        more = f' ({suppressed} more since the last such warning)' if suppressed else ''
-        self.get_logger().warning(f'{what} rejected ({reason}): {text}{more}')
-        self._warned[reason] = (now, 0)
-
-    def _after_reset(self, reason: str, detail: str) -> None:
-        """Log a reset the estimator went through and restart the NIS window."""
-        self._nis.clear()
-        text = f'filter reset ({reason}): {detail}'
-        if reason in ('manual', 'set_state'):
-            self.get_logger().info(text)
-        else:
-            self.get_logger().warning(text)
-
-    def _check_clock(self) -> int:
-        """Return the node clock in ns (0 if unset); reset on a backwards jump."""
-        now_ns = self.get_clock().now().nanoseconds
-        if now_ns == 0:
-            return 0  # a simulated clock that has not started yet
-        last, self._last_clock_ns = self._last_clock_ns, now_ns
-        if now_ns < last:
-            jump = f'node clock jumped back {(last - now_ns) / NS_PER_S:.3f} s'
-            if not self.config.options.reset_on_clock_jump:
-                self.get_logger().warning(f'{jump}; not resetting (reset_on_clock_jump false)')
-            elif self.estimator.initialized:
-                self.estimator.reset('clock_jump')
-                self._after_reset('clock_jump', jump)
-            else:
-                self.get_logger().info(jump)
-        return now_ns
+        step = outputs.step
+        if step is not None:
+            if self.estimate_pub.get_subscription_count():
+                self.estimate_pub.publish(
+                    self._estimate_writer.fill(step.stamp_ns, step.x, step.P))
+            if self.prediction_pub.get_subscription_count():
+                self.prediction_pub.publish(self._prediction_writer.fill(
+                    step.prediction_stamp_ns, step.predicted_x, step.predicted_P))
+        update = outputs.update
+        if update is not None and self.innovation_pub.get_subscription_count():
+            self.innovation_pub.publish(self._innovation_writer.fill(
+                outputs.innovation_stamp_ns, update.innovation[0],
+                update.innovation_covariance[0, 0], update.nis))
 
     # -- services and state -------------------------------------------------------------
 
     def _on_reset_request(self, request, response):
         """Handle ~/reset: forget the state."""
-        self.estimator.reset('manual')
-        self._after_reset('manual', 'requested through ~/reset')
+        self.session.reset()
         response.success = True
         response.message = 'filter reset; the next measurement initialises it'
         return response
@@ -378,42 +290,14 @@ class EstimatorNode(Node):
     def _on_set_state(self, msg: Odometry) -> None:
         """Handle ~/set_state: replace the state with the one the message carries."""
         state = messages.from_state_odometry_msg(msg)
-        try:
-            if state.frame_id and state.frame_id != self.frame_id:
-                raise ValueError(f'frame_id {state.frame_id!r} is not {self.frame_id!r}')
-            stamp_ns = (state.stamp_ns or self.estimator.last_stamp_ns
-                        or self.get_clock().now().nanoseconds)
-            n = self.preset.dim_x  # the robot's state is the position alone
-            self.estimator.set_state(stamp_ns, state.x[:n], [row[:n] for row in state.P[:n]])
-        except ValueError as error:
-            self.set_state_refused += 1
-            self.get_logger().warning(f'~/set_state refused: {error}')
-            return
-        self._after_reset('set_state', f'x = {state.x} at {stamp_ns} ns')
+        self.session.set_state(state.stamp_ns, state.frame_id, state.x, state.P,
+                               self.get_clock().now().nanoseconds)
 
     # -- diagnostics --------------------------------------------------------------------
 
     def _on_diagnostics_timer(self) -> None:
         """Publish /diagnostics and say once when measurements stop."""
-        self._check_clock()
-        now = time.monotonic()
-        elapsed = max(now - self._tick_mono, 1e-9)
-        since = self._last_fused_mono if self._last_fused_mono is not None else self._start_mono
-        activity = Activity((self.received - self._received_at_tick) / elapsed,
-                            (self.fused - self._fused_at_tick) / elapsed, now - since,
-                            self._last_fused_mono is not None)
-        self._tick_mono, self._received_at_tick, self._fused_at_tick = (
-            now, self.received, self.fused)
-        counts = NodeCounts(self.received, self.fused, self.rejected, self.set_state_refused,
-                            self.controls_received, self.controls_rejected)
-        status = filter_status(self.estimator, counts, activity,
-                               self.config.options.timeout_s, self._nis)
-        if status.timeout_warning is not None and not self._timed_out:
-            self.get_logger().warning(status.timeout_warning)
-            self._timed_out = True
-        elif status.timeout_warning is None and self._timed_out:
-            self.get_logger().info('measurements are being fused again')
-            self._timed_out = False
+        status = self.session.diagnostics(self.get_clock().now().nanoseconds)
         msg = messages.to_diagnostics_msg(
             self.get_clock().now().nanoseconds, f'{self.get_name()}: filter', 'kf_train',
             status.level, status.message, status.values)
