@@ -124,7 +124,10 @@ def per_step_noise_terms(a: float, c: float, b: float, period_s: float,
         n, r = n - 1, r + T
     s0 = n + r / T
     s1 = n * r + T * n * (n - 1) / 2.0
-    s2 = n * r ** 2 + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
+    # r * r, not r ** 2: a product is correctly rounded on every machine, libm's pow is
+    # not (glibc misrounds ~1 square in 1000, differently with and without FMA), and
+    # the vectorised copies (fleet, presets) square with numpy, which is exact too.
+    s2 = n * (r * r) + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
     return a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1, b * s0
 
 

@@ -29,6 +29,8 @@ def test_constant_velocity_F():
     """F(dt) is [[1, dt], [0, 1]] and F(a) F(b) == F(a + b)."""
     assert np.array_equal(constant_velocity_F(0.3), np.array([[1.0, 0.3], [0.0, 1.0]]))
     assert np.array_equal(constant_velocity_F(0.0), np.eye(2))
+    # Each entry of the product is a sum of one product with 1.0 and exact zeros: a
+    # single rounding of 0.2 + 1.3 on any BLAS, within 1 ulp of 1.5 (2.2e-16).
     assert np.allclose(constant_velocity_F(0.2) @ constant_velocity_F(1.3),
                        constant_velocity_F(1.5), rtol=0.0, atol=1e-15)
 
@@ -38,6 +40,7 @@ def test_constant_velocity_F():
 def test_white_noise_acceleration_formula(q, dt):
     """Q(dt) is q · [[dt³/3, dt²/2], [dt²/2, dt]]."""
     expected = q * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0], [dt ** 2 / 2.0, dt]])
+    # The same IEEE operations in the same order (no BLAS): equal to the bit.
     np.testing.assert_allclose(WhiteNoiseAcceleration(q)(dt), expected, rtol=1e-15, atol=0.0)
 
 
@@ -45,6 +48,8 @@ def test_white_noise_acceleration_formula(q, dt):
 @pytest.mark.parametrize('dt', [1e-3, 0.1, 0.7, 1.0, 2.0, 10.0, 1234.5])
 def test_white_noise_acceleration_matches_integral(q, dt):
     """Q(dt) equals the numerically integrated continuous noise."""
+    # Gauss-Kronrod integrates these quadratics exactly; what is left is rounding of a
+    # 21-point sum of positive terms (~21u) and of the closed form (a few u): << 1e-10.
     np.testing.assert_allclose(WhiteNoiseAcceleration(q)(dt), _wna_integral(q, dt),
                                rtol=1e-10, atol=0.0)
 
@@ -56,7 +61,9 @@ def test_white_noise_acceleration_matches_trapezoid():
     FG = np.stack([s, np.ones_like(s)])  # F(s) G for every s, shape (2, len(s))
     integrand = q * FG[:, None, :] * FG[None, :, :]
     Q = integrate.trapezoid(integrand, s, axis=-1)
-    # The trapezoid error is dt h² max|f''| / 12 with f'' = 2q for the (0, 0) entry.
+    # The trapezoid error is dt h² max|f''| / 12 with f'' = 2q for the (0, 0) entry,
+    # exactly so for this quadratic; 1e-12 covers the pairwise sum's rounding of 2e5
+    # positive terms (~18u·|Q| ≈ 3e-14). numpy elementwise, no BLAS: deterministic.
     h = dt / (len(s) - 1)
     np.testing.assert_allclose(WhiteNoiseAcceleration(q)(dt), Q, rtol=0.0,
                                atol=dt * h ** 2 * 2.0 * q / 12.0 + 1e-12)
@@ -68,6 +75,8 @@ def test_white_noise_acceleration_zero_dt_and_properties():
     for dt in DTS:
         Q = WhiteNoiseAcceleration(7.0)(dt)
         assert np.array_equal(Q, Q.T)
+        # eigvalsh is backward stable: its eigenvalues are within ~n·u·|Q| (2e-16 |Q|
+        # here) of those of the PSD Q.
         assert np.min(np.linalg.eigvalsh(Q)) >= -1e-12 * np.max(np.abs(Q))
 
 
@@ -123,6 +132,9 @@ def test_per_step_noise_matches_stepping(Q_step, dt):
     """Q(n·T + r) equals n full steps then a remainder step weighted r/T."""
     noise = PerStepNoise(Q_step, 0.1)
     expected = _brute_force_per_step(Q_step, 0.1, dt)
+    # Plain float arithmetic against exact rationals (deterministic): the closed form
+    # rounds ~10 times on terms of the result's size; r = dt − n·T is off by u·dt, which
+    # n·r and n·r² carry as ~n·u·dt·|c, b| <= 1e-15 relative of Q even at dt = 1234.5.
     np.testing.assert_allclose(noise(dt), expected, rtol=1e-12,
                                atol=1e-12 * np.max(np.abs(expected)))
 
@@ -144,6 +156,8 @@ def test_per_step_noise_seed_two_seconds_is_twenty_steps():
     Q = np.zeros((2, 2))
     for _ in range(20):
         Q = F @ Q @ F.T + Q_step
+    # Every term is >= 0 (no cancellation), so either side is within ~20 steps × 4
+    # roundings = 80u ≈ 1e-14 relative of the exact value, whatever BLAS does.
     np.testing.assert_allclose(PerStepNoise(Q_step, 0.1)(2.0), Q, rtol=1e-12, atol=0.0)
 
 

@@ -85,6 +85,11 @@ def test_fleet_with_arbitrary_per_filter_dt(noise):
         fleet.step(z, dt)
         for i, single in enumerate(singles):
             single.step(float(z[i]), float(dt[i]))
+    # Per step the two Q's differ by <= 4 ulp (test_vectorised_noise_terms_equal_the_
+    # scalar_ones), i.e. <= 8u·|Q| (u = eps/2, |Q| <= q·dt <= ~1); every other
+    # operation is the same IEEE-rounded one on both sides. That moves P by <= 8u|Q| and
+    # x by |δK||y| <= 8u|Q|/S·|y| per step, carried by the stable filter (gain products
+    # < 1): <= 60·8u·max(|Q|, |Q||y|/S) ≈ 5e-14·scale over the 60 steps. 1e-13 holds.
     for i, single in enumerate(singles):
         np.testing.assert_allclose(fleet.filter_state(i), single.state, rtol=1e-13,
                                    atol=1e-13)
@@ -107,6 +112,7 @@ def test_fleet_equals_the_generic_path():
             x, P = kalman.predict(*states[i], constant_velocity_F(dt[i]), noise(dt[i]))
             x, P, result = kalman.update(x, P, [z[i]], POSITION_H, [[0.5]])
             states[i] = (x, P)
+            # Rounding only, well conditioned (scalar S): as test_core_kalman.RTOL.
             np.testing.assert_allclose(fleet.x[i], x, rtol=1e-9, atol=1e-9)
             np.testing.assert_allclose(fleet.P[i], P, rtol=1e-9, atol=1e-9)
             np.testing.assert_allclose(fleet.nis[i], result.nis, rtol=1e-9, atol=1e-12)

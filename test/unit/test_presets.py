@@ -22,6 +22,13 @@ import pytest
 from scipy import integrate, stats
 import yaml
 
+# The seed loops and the presets evaluate the same recursion in float64 and differ only
+# by rounding (textbook against Joseph form, BLAS order and FMA). A step rounds by
+# <= ~16u of terms of size |F||x|, |x|, |K y| (|F||P||F|ᵀ, ... for P), times κ(S) <=
+# 2.4 (scaled) for the 2-D measurements; the closed loop (I − K H) F carries it on.
+# Summed with the actual products over each seed's 100 rows this first-order bound is
+# <= 1e-10 m for x (|x| <= 270) and <= 3.4e-11 for P (range-bearing: 4.4e-12 of
+# max|P|, hence its relative atol): 1e-9 leaves a margin of >= 10.
 ATOL = 1e-9
 SEEDS = [0, 1, 2]
 
@@ -258,7 +265,10 @@ def test_car_exact_differs_only_by_B():
     """car-exact uses B = [dt²/2, dt]; with zero control it equals car."""
     car, exact = load_preset('car'), load_preset('car-exact')
     np.testing.assert_array_equal(car.dynamics.control(0.1), [[0.0], [0.1]])
-    _assert_close(exact.dynamics.control(0.1), [[0.005], [0.1]], atol=1e-17)
+    # dt**2/2 goes through numpy's power (within 4 ulp = 8u on SIMD paths, u = eps/2,
+    # 1 ulp on others: it differs by CPU) and 0.1, 0.005 are rounded decimals: 8·eps.
+    np.testing.assert_allclose(exact.dynamics.control(0.1), [[0.005], [0.1]],
+                               rtol=8 * np.finfo(float).eps, atol=0.0)
     yv, _, _ = _seed001(0)
     t = np.arange(1, 101) * 0.1
     a = run_series(car, t, yv, np.zeros(100))
@@ -279,7 +289,9 @@ def test_robot_exact_process_noise():
     """robot-exact's Q is the speed noise propagated: (dt·SpeedStd)², not SpeedStd²."""
     exact, seed = load_preset('robot-exact'), load_preset('robot')
     for dt in (0.05, 0.1, 0.3):
-        _assert_close(exact.dynamics.Q(dt), [[(dt * 0.2) ** 2]], atol=1e-18)
+        # (dt·0.2)² however it is grouped: <= 3 roundings each side, 4·eps = 8u apart.
+        np.testing.assert_allclose(exact.dynamics.Q(dt), [[(dt * 0.2) ** 2]],
+                                   rtol=4 * np.finfo(float).eps, atol=0.0)
     _assert_close(seed.dynamics.Q(0.1), [[0.04]], atol=0.0)
 
 
@@ -489,7 +501,9 @@ def test_continuous_noise_is_integrated_exactly():
 
 def test_dt_expressions():
     """B entries accept arithmetic in dt and reject anything else, naming the entry."""
-    assert DtExpression('dt**2/2')(np.array([0.2]))[0] == pytest.approx(0.02, abs=1e-17)
+    # numpy's power: within 4 ulp (8u) on SIMD paths, and 0.2, 0.02 are rounded: 8·eps.
+    assert DtExpression('dt**2/2')(np.array([0.2]))[0] == pytest.approx(
+        0.02, rel=8 * np.finfo(float).eps, abs=0.0)
     assert DtExpression('-(dt + 1) * 2')(np.array([1.0]))[0] == -4.0
     assert DtExpression(3)(np.array([5.0]))[0] == 3.0
     for bad in ('__import__("os")', 'dt.real', 'x', 'lambda: 1', 'dt if 1 else 2', '1/0',

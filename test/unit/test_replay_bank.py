@@ -20,7 +20,14 @@ FIELDS = ('x', 'P', 'x_prior', 'P_prior', 'F', 'predicted_x', 'predicted_P')
 
 
 def _close(a, b, tol=1e-9):
-    """Assert |a − b| <= tol · max(1, |b|) elementwise."""
+    """
+    Assert |a − b| <= tol · max(1, |b|) elementwise.
+
+    The bank runs each object's rows (a few to a few dozen) through the same filters
+    as run_series does alone, vectorised across objects: rounding only, and over so
+    few rows the first-order bound of test_presets.ATOL is < 1e-11 of the scale.
+    ``tol = 0`` is used where the arithmetic is exact (integer-nanosecond dt).
+    """
     a, b = np.asarray(a), np.asarray(b)
     assert a.shape == b.shape
     assert np.all(np.abs(a - b) <= tol * np.maximum(1.0, np.abs(b))), np.max(np.abs(a - b))

@@ -24,7 +24,17 @@ PARAMETERS = [(1e-3, 2.0, 0.0), (1.0, 2.0, 0.0), (0.5, 0.0, 1.5), (1e-4, 5.0, 1.
 
 
 def _close(a, b, tol=1e-9):
-    """Assert |a − b| <= tol · max(1, |b|) elementwise."""
+    """
+    Assert |a − b| <= tol · max(1, |b|) elementwise.
+
+    1e-9 against the KF on the linear presets: the deviation form's only extra rounding
+    is the sum of the ±√c F L_i deviations, amplified by 1/(2c): γ_2n·Σ|F L_j|/√c per
+    step. Carried through the closed loop with the actual products (every linear preset,
+    seed 3), that first-order bound is <= 3e-11 relative at α = 1e-3, <= 2.5e-10 at
+    α = 1e-4 (κ = 1) and 3.4e-10 for the car at α = 1e-4, κ = −1.9, the corner of
+    the hypothesis test. Against filterpy on range-bearing (α >= 0.3, n/c <= 11):
+    h's rounding amplified by n/c is ~1e-12 per step. 1e-9 leaves a margin of >= 3.
+    """
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     assert a.shape == b.shape
     err = np.abs(a - b) / np.maximum(1.0, np.abs(b))
@@ -51,15 +61,30 @@ def test_sigma_points_reproduce_mean_and_covariance(alpha, beta, kappa):
     points = MerweScaledSigmaPoints(n, alpha, beta, kappa)
     reference = FilterpyPoints(n, alpha, beta, kappa)
     c = alpha ** 2 * (n + kappa)
+    eps = np.finfo(float).eps
+    # Plain float arithmetic (no BLAS): 0.5 / c is computed as such, exactly.
     np.testing.assert_allclose(points.Wm[1:], 0.5 / c, rtol=1e-15)
-    np.testing.assert_allclose(points.Wm[0], 1.0 - n / c, rtol=1e-15)
+    # λ/c = (c − n)/c against 1 − n/c: each rounds twice, by <= u·(n/c) + u·|1 − n/c|
+    # + u·|λ/c| in all, < 2·eps·max(1, n/c) (u = eps/2).
+    np.testing.assert_allclose(points.Wm[0], 1.0 - n / c, rtol=0.0,
+                               atol=2.0 * eps * max(1.0, n / c))
     # filterpy forms n + λ from λ = c − n, a rounding of ε·n relative to c.
-    tolerance = 4.0 * np.finfo(float).eps * max(1.0, n / c)
+    tolerance = 4.0 * eps * max(1.0, n / c)
     np.testing.assert_allclose(points.Wm, reference.Wm, rtol=tolerance)
     np.testing.assert_allclose(points.Wc, reference.Wc, rtol=tolerance)
+    # fsum adds exactly: what is left is the weights' own rounding, <= u·(3n/c + 2)
+    # (Wm_0 rounds twice), < 4u/α² for these κ (n/(n + κ) <= 8/7): inside 1e-15/α².
     assert math.fsum(points.Wm) == pytest.approx(1.0, abs=1e-15 / alpha ** 2)
     moments = unscented_predict(x, P, points, np.zeros((n, n)), F=np.eye(n))
-    _close(moments[0], x, 1e-12)
+    # With F = I the deviations are s_i = ±√c L_i exactly (products by 1 and 0), so
+    # the mean x + Σ s_i / (2c) is off only by the rounding of the sum of 2n terms,
+    # <= γ_2n Σ|s_i| / (2c) = γ_2n Σ_j |L_j| / √c (γ_k ≈ k·u, any order or FMA),
+    # and of x + δ (u|x|). At α = 1e-4 that is ~2e-11: small α amplifies it by 1/α.
+    L = np.abs(np.linalg.cholesky(P))
+    mean_bound = eps * np.abs(x) + 2 * n * eps * L.sum(axis=1) / math.sqrt(c)
+    assert np.all(np.abs(moments[0] - x) <= mean_bound)
+    # The covariance Σ W s_i s_iᵀ = L Lᵀ rounds by <= γ_2n |L||L|ᵀ, Cholesky's
+    # backward error adds γ_{n+1} |L||L|ᵀ: ~15u·|P| in all, well inside 1e-12.
     _close(moments[1], P, 1e-12)
 
 
@@ -202,7 +227,13 @@ def _solve_ld(A, B):
 
 
 def _textbook_ukf_ld(preset, scenario, alpha, beta, kappa):
-    """Run the textbook (direct-form) angle-aware UKF in long double; return the means."""
+    """
+    Run the textbook (direct-form) angle-aware UKF in long double.
+
+    Return the posterior means (N, 4) and, per step, what the rounding bound of
+    test_small_alpha_stays_within_the_rounding_floor_of_h needs: the prior mean, the
+    gain K and the largest |h(χ_i)| of each measurement component.
+    """
     ld = np.longdouble
     n = 4
     lam = ld(alpha) ** 2 * (n + ld(kappa)) - n
@@ -217,7 +248,7 @@ def _textbook_ukf_ld(preset, scenario, alpha, beta, kappa):
     def sigmas(x, P):
         L = _cholesky_ld((n + lam) * P)
         return np.array([x] + [x + L[:, i] for i in range(n)] + [x - L[:, i] for i in range(n)])
-    means = []
+    means, priors, gains, z_abs = [], [], [], []
     for dt, z in zip(time_steps_s(scenario.t_s), scenario.z):
         F, Q = preset.dynamics.F(dt).astype(ld), preset.dynamics.Q(dt).astype(ld)
         Y = sigmas(x, P) @ F.T
@@ -231,46 +262,90 @@ def _textbook_ukf_ld(preset, scenario, alpha, beta, kappa):
         S = (dZ * Wc[:, None]).T @ dZ + R
         Pxz = ((X - x) * Wc[:, None]).T @ dZ
         K = _solve_ld(S, Pxz.T).T
+        priors.append(x)
+        gains.append(K)
+        z_abs.append(np.max(np.abs(Z), axis=0))
         x = x + K @ (z.astype(ld) - zp)
         P = P - K @ S @ K.T
         P = (P + P.T) / 2
         means.append(x)
-    return np.array(means)
+    return tuple(np.array(a).astype(float) for a in (means, priors, gains, z_abs))
 
 
-def _relative_error(x, exact):
-    """Return the largest |x − exact| / max(1, |exact|)."""
-    return float(np.max(np.abs(x - exact) / np.maximum(1.0, np.abs(exact))))
+def _range_bearing_jacobian(x):
+    """Return ∂[atan2(y, x), √(x² + y²)] / ∂[x, vx, y, vy] at state x (sensor at 0)."""
+    r2 = x[0] ** 2 + x[2] ** 2
+    r = math.sqrt(r2)
+    return np.array([[-x[2] / r2, 0.0, x[0] / r2, 0.0], [x[0] / r, 0.0, x[2] / r, 0.0]])
 
 
-@pytest.mark.parametrize('alpha', [1e-2, 1e-3])
-def test_small_alpha_is_accurate_where_the_direct_form_is_not(alpha):
+def _ukf_rounding_bound(preset, scenario, alpha, priors, gains, z_abs):
     """
-    At small alpha the UKF stays close to a long-double transcription; filterpy does not.
+    Return a bound (N, 4) on |float64 UKF − exact| for the range-bearing run.
 
-    The direct form sums Wm_0·Y_0 with Wm_0 = 1 − n/c (≈ −10⁶ at MATLAB's α = 1e-3)
-    and loses ~log10(n/c) digits of |x|; the deviation form does not. What is left is
-    the rounding of h(χ_i) itself, amplified by 1/(2c) in the second-order mean (the
-    floor for any float64 evaluation of h): below 1e-9 at α = 1e-2, and at α = 1e-3
-    (where that floor is ~1e-8) still ten times smaller than filterpy's error.
+    Derivation, to first order in the unit roundoffs u (float64) and u_ld (long double):
+
+    * One float64 h(χ_i) is off by <= 8u·|h| (numpy's arctan2 and hypot are within
+      4 ulp: numpy's accuracy tests allow up to 4 ulp for its float64 SIMD functions),
+      plus the effect of rounding χ_i = x + s_i (<= u|χ_i| per component), which moves
+      the bearing by <= u·|χ|/r = u and the range by <= u·r.
+    * The measurement mean is Y_0 + Σ_{i>=1} d_i / (2c), d_i = h(χ_i) ⊖ h(χ_0), so these
+      errors reach it as <= (2n / 2c)·(e_0 + max_i e_i) = (n/c)·2·max e. This is the
+      floor of any float64 UKF: 1/(2c) = 1.25e5 at α = 1e-3. (The sum of the d_i and
+      the division add ~2n·u·Σ|d_i| / 2c, below 1e-4 of it: d_i ~ √c·σ.)
+    * The reference (direct form, long double) rounds 2n + 1 terms as large as
+      (n/c)·|h| each: <= (2n + 1)·2·(n/c)·u_ld·|h|, about 1e-3 of ours.
+    * The errors of S, P_xz and K are relative ~ e/|d_i| < 1e-9 and multiply an
+      innovation of a few σ: below 1e-3 of the above, as is the rounding of x itself.
+    * An error η_j in the predicted measurement at step j moves the state by −K_j η_j;
+      the filter carries a state error e forward as (I − K J) F e (J the measurement
+      Jacobian), so e_k = −Σ_j Φ_k⋯Φ_{j+1} K_j η_j and |e_k| <= Σ_j |Φ_k⋯Φ_{j+1} K_j| η_j
+      elementwise. (Bounding factor by factor, |Φ_k|⋯|Φ_{j+1}|, grows without limit.)
+
+    The products are taken from the long-double run; a factor 2 covers the neglected
+    second-order terms.
+    """
+    n = 4
+    c = alpha ** 2 * n
+    u = float(np.finfo(float).eps) / 2.0
+    u_ld = float(np.finfo(np.longdouble).eps) / 2.0
+    bearing, radius = z_abs[:, 0], z_abs[:, 1]
+    e_h = np.column_stack([8.0 * u * bearing + u, 8.0 * u * radius + u * radius])
+    eta = (n / c) * 2.0 * e_h + (2 * n + 1) * 2.0 * (n / c) * u_ld * z_abs
+    bound = np.empty_like(priors)
+    carried = []  # Φ_k⋯Φ_{j+1} K_j for every earlier step j
+    for k, dt in enumerate(time_steps_s(scenario.t_s)):
+        Phi = (np.eye(n) - gains[k] @ _range_bearing_jacobian(priors[k])) @ preset.dynamics.F(dt)
+        carried = [Phi @ M for M in carried] + [gains[k]]
+        bound[k] = sum(np.abs(M) @ eta[j] for j, M in enumerate(carried))
+    return 2.0 * bound
+
+
+@pytest.mark.skipif(np.finfo(np.longdouble).eps > 1e-18,
+                    reason='the reference needs an extended-precision long double')
+@pytest.mark.parametrize('alpha', [1e-2, 1e-3])
+def test_small_alpha_stays_within_the_rounding_floor_of_h(alpha):
+    """
+    At small alpha the UKF's error is the rounding of h, amplified by n/c, and no more.
+
+    Against a long-double transcription of the textbook UKF, every step's state error
+    is within the first-order bound of :func:`_ukf_rounding_bound`: the float64
+    rounding of h(χ_i), which the sigma-point mean amplifies by n/c = 1/α² (10⁶ at
+    MATLAB's α = 1e-3), carried through the filter. Nothing else may add to it: the
+    deviation form does not round Wm_0·Y_0 (|Wm_0| ≈ n/c) against the other terms,
+    and it computes the linear prediction exactly (that part is held to the KF at
+    1e-9 down to α = 1e-4 by test_ukf_equals_the_kf_for_any_parameters).
     """
     preset = load_preset('range-bearing')
     scenario = scenario_for_preset('range-bearing', 0)
-    exact = _textbook_ukf_ld(preset, scenario, alpha, 2.0, 0.0).astype(float)
+    exact, priors, gains, z_abs = _textbook_ukf_ld(preset, scenario, alpha, 2.0, 0.0)
     ours = run_filter_series(make_filter(preset, 'ukf', alpha=alpha), scenario.t_s,
                              scenario.z).x
-    reference = _filterpy_ukf(preset, alpha, 2.0, 0.0)
-    theirs = []
-    for dt, z in zip(time_steps_s(scenario.t_s), scenario.z):
-        reference.Q = preset.dynamics.Q(dt)
-        reference.predict(dt=dt)
-        reference.update(z)
-        theirs.append(reference.x.copy())
-    ours_error = _relative_error(ours, exact)
-    if alpha >= 1e-2:
-        assert ours_error <= 1e-9
-    else:
-        assert ours_error <= _relative_error(np.array(theirs), exact) / 10.0
+    bound = _ukf_rounding_bound(preset, scenario, alpha, priors, gains, z_abs)
+    error = np.abs(ours - exact)
+    assert np.all(error <= bound), float(np.max(error / bound))
+    # The bound is not vacuous: ~3e-12/α² (3e-8 at α = 1e-2, 3e-6 at 1e-3, m and m/s).
+    assert np.max(bound) < 1e-11 / alpha ** 2
 
 
 def test_circular_mean_is_right_across_the_branch_cut():
