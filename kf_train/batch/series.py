@@ -783,8 +783,12 @@ def _lockstep_linear(preset, dt, z, u, groups: Groups, objects: np.ndarray, x0, 
     Hs, Rs = soa_const(preset.model.H), soa_const(preset.model.R)
     eye = soa_const(np.eye(n))
     Ht, Rt = soa_t(Hs), Rs
-    x_state = np.repeat(np.asarray(x0, dtype=float)[:, None], K, axis=1)
-    P_state = np.repeat(np.asarray(P0, dtype=float)[:, :, None], K, axis=2)
+    # One initial estimate for every object, or one each: x0 (n, K), P0 (n, n, K) in the
+    # order of ``objects`` (a stream's objects carry their state from the previous block).
+    x0, P0 = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
+    x_state = np.array(x0[:, perm]) if x0.ndim == 2 else np.repeat(x0[:, None], K, axis=1)
+    P_state = (np.array(P0[:, :, perm]) if P0.ndim == 3
+               else np.repeat(P0[:, :, None], K, axis=2))
     out_x, out_P, out_xp, out_Pp = out
     for k in range(steps):
         a, lo, hi = int(active[k]), int(offsets[k]), int(offsets[k + 1])
