@@ -58,6 +58,7 @@ from kf_train.batch.series import (
     run_filter_series, run_linear_series, run_series, SeriesError, SeriesResult,
     TimeOrderError)
 from kf_train.batch.smoother import rts_smooth, smooth_series, SmootherResult
+from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
 from kf_train.filters.family import (
     add_filter_options, Filter, FILTER_KINDS, filter_options, make_filter)
 from kf_train.io import csvio
@@ -509,14 +510,17 @@ def _parser() -> argparse.ArgumentParser:
                'smoothed_<state> and var_smoothed_<state> with --smooth. Presets: '
                + ', '.join(available_presets()) + '. Bad input names the line and '
                'column, exits 1 and writes nothing.')
-    parser.add_argument('input', metavar='INPUT.csv', nargs='?',
-                        help="measurements ('-' reads standard input)")
+    parser.add_argument('input', metavar='INPUT', nargs='?',
+                        help="measurements: CSV, a .parquet file or a directory of Parquet "
+                             "files ('-' reads CSV from standard input)")
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME', choices=available_presets(),
                         help='a shipped preset: %(choices)s')
     source.add_argument('--config', metavar='FILE', help='a preset YAML file of your own')
-    parser.add_argument('--output', '-o', metavar='OUTPUT.csv',
-                        help="where to write the estimates ('-' writes standard output)")
+    parser.add_argument('--output', '-o', metavar='OUTPUT',
+                        help='where to write the estimates: CSV, a .parquet file or a '
+                             "directory (a Parquet dataset); '-' writes CSV to standard "
+                             'output')
     parser.add_argument('--horizon', metavar='S', type=float, default=None,
                         help="predict S seconds ahead of every row (default: the preset's "
                              'horizon; 0 turns prediction off)')
@@ -526,6 +530,7 @@ def _parser() -> argparse.ArgumentParser:
                         help='time at which the initial estimate holds [s] (default 0)')
     parser.add_argument('--list', action='store_true',
                         help='list the shipped presets and exit')
+    add_engine_options(parser)
     parser.add_argument('--filter', choices=FILTER_KINDS, default=None,
                         help='run this filter of the family row by row (default: the '
                              "preset's exact filter, vectorised where linear): %(choices)s")
@@ -544,7 +549,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.preset is None and args.config is None:
         parser.error('one of --preset NAME or --config FILE is required')
     if args.input is None or args.output is None:
-        parser.error('INPUT.csv and --output OUTPUT.csv are required')
+        parser.error('INPUT and --output OUTPUT are required')
+    check_engine_options(parser, args)
     for option, value in (('--horizon', args.horizon), ('--t0', args.t0)):
         if value is not None and not np.isfinite(value):
             parser.error(f'{option} must be a finite number, got {value}')
@@ -557,8 +563,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         preset = load_preset(args.preset) if args.preset else load_preset_file(args.config)
         filt = None if args.filter is None else make_filter(preset, args.filter, options)
-        summary = replay(preset, args.input, args.output, horizon_s=args.horizon,
-                         smooth=args.smooth, t0_s=args.t0, filt=filt)
+        summary = run_engine(args, preset, filt)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT
