@@ -49,11 +49,14 @@ class Output:
         ids = _block_ids(codes, names)
         if self.stream is None or not self.fast:
             prefix = None if ids is None else (csvio.format_labels(ids[0]), ids[1])
-            text = csvio.format_rows(columns, prefix=prefix)
-            if self.stream is None:
-                sys.stdout.write(text.decode('utf-8'))
-            else:
-                self.stream.write(text)
+            N = len(columns[0])
+            for start in range(0, N, csvio.BLOCK_ROWS):     # small work arrays, in cache
+                text = csvio.format_rows(columns, start, min(start + csvio.BLOCK_ROWS, N),
+                                         prefix)
+                if self.stream is None:
+                    sys.stdout.write(text.decode('utf-8'))
+                else:
+                    self.stream.write(text)
             return
         self.writer.write(columns, None if ids is None else columnar.id_series(*ids))
 

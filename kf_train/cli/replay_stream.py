@@ -193,20 +193,23 @@ def _line_blocks(stream) -> Iterator[bytes]:
 
 
 class FastCsvSource(Source):
-    """A CSV read by polars; raises columnar.NotPlain for anything unusual."""
+    """A CSV parsed by polars block by block; raises columnar.NotPlain if unusual."""
 
     def start(self) -> None:
         """Read and check the header."""
-        with _open(self.path) as stream:
-            self.header = _header_of(self.path, stream.readline())
+        self.stream = _open(self.path)
+        self.header = _header_of(self.path, self.stream.readline())
         self.wanted = inmemory._resolve(self.path, self.header, self.needed)
         self.id_column = ID_COLUMN if ID_COLUMN in self.header else None
 
     def pieces(self) -> Iterator[Rows]:
-        """Yield the rows in pieces of a block."""
-        for piece in columnar.read_csv_pieces(self.path, self.header, self.wanted,
-                                              self.id_column, DEFAULT_BLOCK_ROWS):
-            yield self.rows_of(piece.columns, piece.codes, piece.labels)
+        """Yield the rows, a few MiB of text at a time."""
+        try:
+            for piece in columnar.read_csv_pieces(_line_blocks(self.stream), self.header,
+                                                  self.wanted, self.id_column):
+                yield self.rows_of(piece.columns, piece.codes, piece.labels)
+        finally:
+            self.stream.close()
 
 
 class ParquetSource(Source):

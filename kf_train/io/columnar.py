@@ -88,21 +88,21 @@ def _piece(frame, wanted: Sequence[str], id_column: Optional[str],
     return Piece(columns, codes, labels)
 
 
-def read_csv_pieces(path: str, header: Sequence[str], wanted: Sequence[str],
-                    id_column: Optional[str], chunk_rows: int) -> Iterator[Piece]:
+def read_csv_pieces(blocks: Iterable[bytes], header: Sequence[str], wanted: Sequence[str],
+                    id_column: Optional[str]) -> Iterator[Piece]:
     """
-    Yield the CSV's rows in pieces; raise NotPlain for anything unusual.
+    Yield the rows of CSV text given in blocks of whole lines (no header); raise NotPlain.
 
-    ``header`` is the file's column names as the caller read them from line 1.
+    ``header`` names the columns (the caller read line 1). Each block is parsed on its
+    own, so memory holds one block (polars' own streaming reader reads ahead without
+    bound on a slow consumer).
     """
     pl = _pl()
-    keep = set(wanted) | ({id_column} if id_column else set())
+    keep = [name for name in header if name in set(wanted) | {id_column}]
     schema = {name: (pl.Float64 if name in wanted else pl.String) for name in header}
     try:
-        frames = pl.scan_csv(path, has_header=False, skip_lines=1, schema=schema,
-                             infer_schema=False).select(
-            [name for name in header if name in keep]).collect_batches(chunk_size=chunk_rows)
-        for frame in frames:
+        for block in blocks:
+            frame = pl.read_csv(block, has_header=False, schema=schema, columns=keep)
             yield _piece(frame, wanted, id_column, lambda column, row: NotPlain(column))
     except (pl.exceptions.PolarsError, OSError, ValueError) as error:
         raise NotPlain(str(error)) from None
