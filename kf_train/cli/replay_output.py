@@ -7,10 +7,12 @@ failed replay leaves an existing OUTPUT as it was. '-' writes CSV to standard ou
 """
 
 import os
+import queue
 import shutil
 import sys
 import tempfile
-from typing import Iterable, List, Optional, Sequence
+import threading
+from typing import Callable, Iterable, List, Optional, Sequence
 
 from kf_train.io import columnar, csvio
 import numpy as np
@@ -61,7 +63,10 @@ class Output:
         self.writer.write(columns, None if ids is None else columnar.id_series(*ids))
 
     def run(self, blocks: Iterable, names: Sequence[str]) -> None:
-        """Write every (columns, codes) block."""
+        """Write every (columns, codes) block (with polars, while the next is computed)."""
+        if self.fast and self.stream is not None:
+            in_background(blocks, lambda block: self.write(*block, names))
+            return
         for columns, codes in blocks:
             self.write(columns, codes, names)
 
@@ -125,14 +130,17 @@ class ParquetDatasetOutput(Output):
 
     def run(self, blocks: Iterable, names: Sequence[str]) -> None:
         """Write every block as the next part file."""
-        for columns, codes in blocks:
+        def write(block) -> None:
+            columns, codes = block
             if not len(columns[0]):
-                continue
+                return
             ids = _block_ids(codes, names)
             columnar.write_parquet_part(
                 os.path.join(self.temporary, f'part-{self.parts:05d}.parquet'), self.header,
                 columns, None if ids is None else columnar.id_series(*ids))
             self.parts += 1
+
+        in_background(blocks, write)
 
     def commit(self) -> None:
         """Replace the target directory (if any) by the finished one."""
@@ -147,6 +155,43 @@ class ParquetDatasetOutput(Output):
     def abort(self) -> None:
         """Remove the temporary directory."""
         shutil.rmtree(self.temporary, ignore_errors=True)
+
+
+def in_background(blocks: Iterable, consume: Callable[[tuple], None], depth: int = 2) -> None:
+    """
+    Consume every block in a second thread while this one produces the next.
+
+    polars writes without holding the GIL, so writing a block overlaps filtering the
+    next one; at most ``depth`` finished blocks wait in memory. An exception on either
+    side stops both and is raised here.
+    """
+    pending: 'queue.Queue' = queue.Queue(maxsize=depth)
+    failed: List[BaseException] = []
+    done = object()
+
+    def writer() -> None:
+        while True:
+            block = pending.get()
+            if block is done:
+                return
+            if not failed:
+                try:
+                    consume(block)
+                except BaseException as error:     # handed to the producing thread
+                    failed.append(error)
+
+    thread = threading.Thread(target=writer, name='kf-train-writer', daemon=True)
+    thread.start()
+    try:
+        for block in blocks:
+            if failed:
+                break
+            pending.put(block)
+    finally:
+        pending.put(done)
+        thread.join()
+    if failed:
+        raise failed[0]
 
 
 def _publish(temporary: str, path: str) -> None:

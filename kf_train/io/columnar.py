@@ -98,7 +98,7 @@ def read_csv_pieces(blocks: Iterable[bytes], header: Sequence[str], wanted: Sequ
     bound on a slow consumer).
     """
     pl = _pl()
-    keep = [name for name in header if name in set(wanted) | {id_column}]
+    keep = [i for i, name in enumerate(header) if name in set(wanted) | {id_column}]
     schema = {name: (pl.Float64 if name in wanted else pl.String) for name in header}
     try:
         for block in blocks:

@@ -317,3 +317,41 @@ def test_engine_usage_errors(tmp_path):
         with pytest.raises(SystemExit) as error:
             main(['--preset', 'train', 'in.csv', '-o', 'out.csv'] + extra)
         assert error.value.code == 2
+
+
+@pytest.mark.parametrize('objects', [0, 4])
+def test_plain_csv_goes_through_polars_unusual_csv_through_the_builtin_reader(
+        tmp_path, monkeypatch, objects):
+    """A plain file never falls back; blank lines and spaces do, with the same bytes."""
+    pytest.importorskip('polars')
+    preset = load_preset('car')
+    source = tmp_path / 'in.csv'
+    _write_csv(source, preset, *_table(preset, 500, 9, objects))
+    assert main(['--preset', 'car', str(source), '-o', str(tmp_path / 'a.csv'),
+                 '--codec', 'builtin']) == 0
+    reads = []
+    original = replay_stream.CsvSource.start
+    monkeypatch.setattr(replay_stream.CsvSource, 'start',
+                        lambda self: reads.append(self.path) or original(self))
+    assert main(['--preset', 'car', str(source), '-o', str(tmp_path / 'b.csv')]) == 0
+    assert reads == []
+    assert (tmp_path / 'a.csv').read_bytes() == (tmp_path / 'b.csv').read_bytes()
+    lines = source.read_text().splitlines()
+    source.write_text('\n'.join(lines[:100] + ['', ' '] + lines[100:]).replace(',', ', ')
+                      + '\n\n')
+    assert main(['--preset', 'car', str(source), '-o', str(tmp_path / 'c.csv')]) == 0
+    assert reads == [str(source)]
+    assert (tmp_path / 'a.csv').read_bytes() == (tmp_path / 'c.csv').read_bytes()
+
+
+def test_offline_modules_import_no_columnar_library():
+    """The core, the estimator and the replay command import neither polars nor dask."""
+    import subprocess
+    import sys
+    code = ('import sys, kf_train.core, kf_train.estimator.estimator, kf_train.cli.replay, '
+            'kf_train.batch.stream, kf_train.batch.partition, kf_train.io.columnar\n'
+            'print(sorted({m.split(".")[0] for m in sys.modules} & {"polars", "dask", '
+            '"distributed", "pandas", "pyarrow"}))')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=60, check=True)
+    assert result.stdout.strip() == '[]'
