@@ -17,6 +17,11 @@ Rows (``--rows``, default all that exist):
    node (same QoS, republishes each message): the transport's own cost.
 5. Start-up: process start to first output, and peak RSS, for each node and for a
    bare rclpy node with the same publishers.
+6. Offline at scale (benchmarks/scale.py): peak RSS of the streamed replay at 10⁶ and
+   10⁷ rows, CSV and Parquet throughput, 200 000 rows against a plain filterpy script,
+   the fleet beside simdkalman at 10⁵ and 10⁶ filters, and ``--engine dask``.
+7. Live fleet capacity (benchmarks/scale.py): one estimator per train at 10 Hz, its
+   CPU share and memory.
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -41,7 +46,7 @@ import threading
 import time
 from typing import Callable, Dict, List, Optional, Sequence, Tuple
 
-ROWS = (1, 2, 3, 4, 5)
+ROWS = (1, 2, 3, 4, 5, 6, 7)
 LIVE_RATES_HZ = (1000, 2000, 5000, 10000)
 Q_DENSITY = 0.5        # white-noise acceleration of the benchmark model [m²/s³]
 DT_S = 0.1
@@ -988,6 +993,16 @@ HELPERS = {'_publisher': _publisher_main, '_probe': _probe_main, '_echo': _echo_
 
 # -- main -----------------------------------------------------------------------------
 
+def _scale_module():
+    """Return benchmarks/scale.py (rows 6 and 7), loaded beside this file."""
+    import importlib.util
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), 'scale.py')
+    spec = importlib.util.spec_from_file_location('kf_train_bench_scale', path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def _parse(argv: List[str]) -> argparse.Namespace:
     """Parse the command line."""
     parser = argparse.ArgumentParser(
@@ -1034,10 +1049,13 @@ def main(argv: Optional[List[str]] = None) -> int:
     print('\n'.join(header), flush=True)
     started = time.monotonic()
     rows: List[Row] = []
+    scale = _scale_module()
     measure = {1: lambda: row_core(args.quick), 2: lambda: row_replay(args.quick),
                3: lambda: row_fleet(args.quick),
                4: lambda: row_live(args.quick, args.rates, args.qos_depth),
-               5: lambda: row_startup(args.quick)}
+               5: lambda: row_startup(args.quick),
+               6: lambda: scale.rows_scale(args.quick),
+               7: lambda: scale.rows_live_fleet(args.quick, sys.modules[__name__])}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()

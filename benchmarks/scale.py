@@ -190,7 +190,8 @@ def _simdkalman_rows(quick: bool) -> List[Row]:
         # simdkalman's first step updates the prior at step 0 (no predict): give it the
         # prior predicted one step, so both run predict-then-update from x0, P0 = I.
         start = time.perf_counter()
-        result = kf.compute(z, 0, initial_value=x0 @ F.T, initial_covariance=F @ F.T + Q,
+        result = kf.compute(z, 0, initial_value=(x0 @ F.T)[:, :, None],
+                            initial_covariance=F @ F.T + Q,
                             filtered=True, smoothed=False, covariances=True,
                             observations=False)
         theirs = (time.perf_counter() - start) / (n * steps)
