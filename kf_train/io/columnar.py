@@ -146,9 +146,13 @@ def read_parquet_pieces(path: str, wanted: Sequence[str], id_column: Optional[st
                             column)
 
     try:
-        frames = pl.scan_parquet(parquet_source(path)).select(keep).collect_batches(
-            chunk_size=chunk_rows)
-        for frame in frames:
+        # Slice by slice: polars' collect_batches reads ahead without bound when the
+        # consumer is slower than the reader (the whole dataset, in the end).
+        scan = pl.scan_parquet(parquet_source(path)).select(keep)
+        while True:
+            frame = scan.slice(done, chunk_rows).collect()
+            if not frame.height:
+                break
             yield _piece(frame, wanted, id_column, bad)
             done += frame.height
     except (pl.exceptions.PolarsError, OSError) as error:
