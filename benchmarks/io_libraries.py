@@ -64,9 +64,10 @@ def main(argv) -> int:
     rows = int(argv[0]) if argv else 1_000_000
     inputs, outputs = _tables(rows)
     rng = np.random.default_rng(1)
-    probe = np.concatenate([rng.integers(0, 2 ** 64, 200_000, dtype=np.uint64).view(
-        np.float64), np.concatenate(list(outputs.values()))[:200_000], [0.0, -0.0, 5e-324,
-                                                                         1e308, 1e-5, 1e-7]])
+    random_bits = rng.integers(0, 2 ** 64, 200_000, dtype=np.uint64).view(np.float64)
+    estimates = np.concatenate(list(outputs.values()))[:200_000]
+    special = np.array([0.0, -0.0, 5e-324, 1e308, 1e-5, 1e-7])
+    probe = np.concatenate([random_bits, estimates, special])
     probe = probe[np.isfinite(probe)]
     lines = ['| library | CSV read, 2 columns | CSV write, 9 columns | Parquet read, 9 '
              'columns | Parquet write, 9 columns | CSV text ≠ repr (of %d) | repr text '

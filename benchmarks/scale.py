@@ -32,7 +32,7 @@ from typing import List, Tuple
 Row = Tuple[str, str, str, str, str, str]
 
 # Runs a command and prints its wall time, CPU time and peak RSS (its own rusage).
-_MEASURE = r'''
+_MEASURE = r"""
 import json, resource, subprocess, sys, time
 start = time.perf_counter()
 done = subprocess.run(sys.argv[1:], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -41,7 +41,7 @@ use = resource.getrusage(resource.RUSAGE_CHILDREN)
 print(json.dumps({'wall': wall, 'cpu': use.ru_utime + use.ru_stime,
                   'rss_mib': use.ru_maxrss / 1024.0, 'code': done.returncode,
                   'stderr': done.stderr.decode(errors='replace')[-400:]}))
-'''
+"""
 
 
 def _measured(command: List[str]) -> dict:
@@ -119,9 +119,10 @@ def _memory_rows(directory: str, quick: bool) -> List[Row]:
     run = _measured(_kf_train() + ['replay', '--preset', 'train', csv, '-o', out, '--engine',
                                    'memory'])
     os.unlink(out)
-    rows.append(('6', 'replay memory, train preset', f'in memory (today\'s), {sizes[0]:,} rows',
-                 f'peak RSS {run["rss_mib"]:.0f} MiB', f'{run["rss_mib"] * 2 ** 20 / sizes[0]:.0f}'
-                 ' B/row', '-'))
+    per_row = run['rss_mib'] * 2 ** 20 / sizes[0]
+    rows.append(('6', 'replay memory, train preset', f'in memory (--engine memory), '
+                 f'{sizes[0]:,} rows', f'peak RSS {run["rss_mib"]:.0f} MiB',
+                 f'{per_row:.0f} B/row', '-'))
     return rows
 
 
@@ -163,14 +164,15 @@ def _filterpy_rows(directory: str, quick: bool) -> List[Row]:
     return [('6', f'replay vs filterpy script, {size:,} rows', 'kf-train replay --preset '
              'train (process)', f'{ours["wall"]:.2f} s wall, {ours["cpu"]:.2f} s CPU; Δ vs '
              f'filterpy {delta:.1e}', f'{ratio:.1f}× faster (CPU: '
-             f'{theirs["cpu"] / ours["cpu"]:.1f}×)', f'≥10×: {"met" if ratio >= 10 else "MISSED"}'),
+             f'{theirs["cpu"] / ours["cpu"]:.1f}×)',
+             f'≥10×: {"met" if ratio >= 10 else "MISSED"}'),
             ('6', f'replay vs filterpy script, {size:,} rows', 'filterpy_replay.py (loadtxt, '
              'predict/update loop, savetxt)', f'{theirs["wall"]:.2f} s wall, '
              f'{theirs["cpu"]:.2f} s CPU', '1.0×', '-')]
 
 
 def _simdkalman_rows(quick: bool) -> List[Row]:
-    """simdkalman beside TrainFleet on one 2-state problem: ns per filter-step."""
+    """Measure TrainFleet beside simdkalman on one 2-state problem: ns per filter-step."""
     import numpy as np
     import simdkalman
     from kf_train.batch.fleet import TrainFleet

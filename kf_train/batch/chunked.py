@@ -28,7 +28,7 @@ and runs the backward pass block by block from the end, each object anchored on 
 smoothed row of the next block. Memory stays bounded; disk grows with the rows.
 """
 
-from typing import Iterator, List, NamedTuple, Optional, Sequence, Tuple
+from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch.series import (
     _bank_horizon, _lockstep_linear, group_rows, LOCKSTEP_STEP_S, MAX_ABS_TIME_S,
@@ -121,8 +121,8 @@ def output_header(preset, horizon: Optional[float], smooth: bool) -> List[str]:
     header = ['t']
     prefixes = [''] + (['predicted_'] if horizon else []) + (['smoothed_'] if smooth else [])
     for prefix in prefixes:
-        header += [prefix + name for name in names] + ['var_' + prefix + name
-                                                      for name in names]
+        header += [prefix + name for name in names]
+        header += ['var_' + prefix + name for name in names]
     return header
 
 
@@ -216,8 +216,8 @@ class ObjectStates:
                 prev_row, prev_t = int(self.last_row[obj]), float(self.last_t[obj])
             else:
                 prev_row, prev_t = first_row + int(order[k - 1]), float(t[order[k - 1]])
-            raise RowError(first_row + row, f"{float(t[row])!r} is not after the previous "
-                           f"row's t = {prev_t!r}", 'order', prev_row, obj)
+            reason = f"{float(t[row])!r} is not after the previous row's t = {prev_t!r}"
+            raise RowError(first_row + row, reason, 'order', prev_row, obj)
         dt = np.empty(t.shape[0])
         dt[order] = step / NS_PER_S
         return dt

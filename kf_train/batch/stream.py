@@ -16,8 +16,8 @@ import tempfile
 from typing import List, Optional, Sequence
 
 from kf_train.batch.chunked import (
-    BlockFilter, DEFAULT_BLOCK_ROWS, estimate_columns, ObjectStates, OutputBlock,
-    output_header, resolve_horizon, Rows)
+    BlockFilter, DEFAULT_BLOCK_ROWS, estimate_columns, ObjectStates, output_header,
+    OutputBlock, resolve_horizon, Rows)
 from kf_train.batch.spill import ForwardSpill
 import numpy as np
 

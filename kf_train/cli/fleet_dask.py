@@ -73,7 +73,7 @@ def dask_replay(preset, input_path: str, output_path: str, *, workers: int = 2,
     start = time.perf_counter()
     owner = preset if filt is None else filt.preset
     needed = [names[0] for names in inmemory.required_columns(owner)]
-    options = dict(horizon_s=horizon_s, t0_s=t0_s, smooth=smooth, filt=filt)
+    options = {'horizon_s': horizon_s, 't0_s': t0_s, 'smooth': smooth, 'filt': filt}
     for name in ('distributed', 'distributed.shuffle'):
         logging.getLogger(name).setLevel(logging.ERROR)   # the shuffle logs at WARNING
     client, cluster = _client(workers, scheduler)
@@ -100,6 +100,11 @@ def dask_replay(preset, input_path: str, output_path: str, *, workers: int = 2,
 def _write(estimates, output_path: str) -> int:
     """Write the estimates (a directory: Parquet dataset; else one CSV); return the rows."""
     import dask
+    if '://' in output_path:              # an object store: written in place, not renamed
+        written = estimates.drop(columns=[KEY])
+        counts = written.map_partitions(len)
+        dask.compute(written.to_parquet(output_path, write_index=False, compute=False))
+        return int(counts.sum().compute())
     target = output_path.rstrip(os.sep)
     parent = os.path.dirname(os.path.abspath(target))
     temporary = tempfile.mkdtemp(dir=parent, prefix='.' + os.path.basename(target),

@@ -511,7 +511,7 @@ def _parser() -> argparse.ArgumentParser:
                + ', '.join(available_presets()) + '. Bad input names the line and '
                'column, exits 1 and writes nothing.')
     parser.add_argument('input', metavar='INPUT', nargs='?',
-                        help="measurements: CSV, a .parquet file or a directory of Parquet "
+                        help='measurements: CSV, a .parquet file or a directory of Parquet '
                              "files ('-' reads CSV from standard input)")
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME', choices=available_presets(),

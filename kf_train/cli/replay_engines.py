@@ -52,7 +52,7 @@ def check_engine_options(parser: argparse.ArgumentParser, args) -> None:
 
 def run_engine(args, preset, filt):
     """Run the replay the options ask for; return its ReplaySummary (raise InputError)."""
-    common = dict(horizon_s=args.horizon, smooth=args.smooth, t0_s=args.t0, filt=filt)
+    common = {'horizon_s': args.horizon, 'smooth': args.smooth, 't0_s': args.t0, 'filt': filt}
     if args.engine == 'memory':
         from kf_train.cli.replay import replay
         return replay(preset, args.input, args.output, **common)

@@ -33,7 +33,7 @@ import numpy as np
 
 ID_COLUMN = inmemory.ID_COLUMN
 # Bytes of CSV text the built-in reader parses at a time.
-BLOCK_BYTES = 1 << 22
+BLOCK_BYTES = 1 << 20
 
 
 def is_parquet(path: str) -> bool:
@@ -305,8 +305,8 @@ def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
                                   f'Parquet needs polars: {columnar.EXTRA_HINT}'
                                   if parquet else f'--codec polars: {columnar.EXTRA_HINT}')
     fast = have and codec != 'builtin'
-    options = dict(horizon_s=horizon_s, t0_s=t0_s, filt=filt, smooth=smooth,
-                   block_rows=block_rows, spill_dir=spill_dir)
+    options = {'horizon_s': horizon_s, 't0_s': t0_s, 'filt': filt, 'smooth': smooth,
+               'block_rows': block_rows, 'spill_dir': spill_dir}
     sources = _sources(preset, input_path, fast)
     for attempt, source in enumerate(sources):
         last = attempt == len(sources) - 1

@@ -67,9 +67,9 @@ def _write_csv(path, preset, t, z, u, ids):
     """Write a replay input CSV (numbers as repr)."""
     header = (['id'] if ids is not None else []) + ['t'] + [
         c[0] for c in preset.measurement_columns()] + (['u'] if preset.dim_u else [])
-    columns = ([[f'obj{k}' for k in ids]] if ids is not None else []) + [t.tolist()] + [
-        z[:, i].tolist() for i in range(z.shape[1])] + ([u[:, 0].tolist()] if u is not None
-                                                         else [])
+    columns = ([[f'obj{k}' for k in ids]] if ids is not None else []) + [t.tolist()]
+    columns += [z[:, i].tolist() for i in range(z.shape[1])]
+    columns += [u[:, 0].tolist()] if u is not None else []
     with open(path, 'w') as stream:
         stream.write(','.join(header) + '\n')
         for row in zip(*columns):
