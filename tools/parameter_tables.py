@@ -1,53 +1,73 @@
-"""Print the README's parameter tables from the nodes' own declarations."""
+"""
+Print, check or write the documents generated from the nodes' parameter tables.
+
+    python tools/parameter_tables.py            # print the README's parameter tables
+    python tools/parameter_tables.py --config   # print config/kf_train.yaml
+    python tools/parameter_tables.py --write    # write both into README.md and config/
+    python tools/parameter_tables.py --check    # exit 1 if either file differs
+
+The tables are kf_train/ros/simulator_params.py and kf_train/ros/estimator_params.py;
+test/unit/test_param_tables.py keeps README.md and config/kf_train.yaml equal to them.
+"""
 
 import os
 import sys
 
-import rclpy
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+
+from kf_train.ros import estimator_params, simulator_params  # noqa: E402
+from kf_train.ros.param_docs import CONFIG_HEADER, params_file, readme_tables  # noqa: E402
+
+TABLES = (simulator_params.PARAMETERS, estimator_params.PARAMETERS)
+README = os.path.join(REPO, 'README.md')
+CONFIG = os.path.join(REPO, 'config', 'kf_train.yaml')
+# The tables sit between the first node's heading and the next section.
+START = '### `simulator`\n'
+END = '\n## '
 
 
-def rows(node):
-    """Yield one Markdown table row per declared parameter of ``node``."""
-    for name in sorted(node._parameters):
-        if name in ('use_sim_time', 'start_type_description_service'):
-            continue
-        descriptor = node.describe_parameter(name)
-        value = node.get_parameter(name).value
-        if isinstance(value, (list, tuple)) or type(value).__name__ == 'array':
-            value = '[' + ', '.join(f'{v:g}' for v in value) + ']'
-        if descriptor.floating_point_range:
-            r = descriptor.floating_point_range[0]
-            allowed = f'[{r.from_value:g}, {r.to_value:g}]'
-        elif descriptor.integer_range:
-            r = descriptor.integer_range[0]
-            allowed = f'[{r.from_value}, {r.to_value}]'
-        else:
-            allowed = descriptor.additional_constraints or ''
-        live = 'no (restart)' if descriptor.read_only else 'yes'
-        text = ' '.join(descriptor.description.split()).replace('|', '\\|')
-        yield f'| `{name}` | `{value}` | {allowed} | {live} | {text} |'
+def config_text() -> str:
+    """Return config/kf_train.yaml as the tables make it."""
+    return params_file([(table, None) for table in TABLES], CONFIG_HEADER)
 
 
-def main() -> int:
-    """Print both tables."""
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    from kf_train.ros.estimator_node import EstimatorNode
-    from kf_train.ros.simulator_node import SimulatorNode
-    rclpy.init()
-    try:
-        for title, cls in (('simulator', SimulatorNode), ('estimator', EstimatorNode)):
-            node = cls()
-            print(f'### `{title}`\n')
-            print('| parameter | default | range | live | description |')
-            print('|---|---|---|---|---|')
-            for row in rows(node):
-                print(row)
-            print()
-            node.destroy_node()
-    finally:
-        rclpy.try_shutdown()
+def readme_text(current: str) -> str:
+    """Return ``current`` README text with its parameter tables regenerated."""
+    start = current.index(START)
+    end = current.index(END, start)
+    return current[:start] + readme_tables(TABLES) + current[end:]
+
+
+def _read(path: str) -> str:
+    """Return a file's text."""
+    with open(path, encoding='utf-8') as stream:
+        return stream.read()
+
+
+def main(argv) -> int:
+    """Print, write or check; return the exit code."""
+    if argv[1:] == ['--config']:
+        sys.stdout.write(config_text())
+    elif argv[1:] in (['--write'], ['--check']):
+        wanted = {README: readme_text(_read(README)), CONFIG: config_text()}
+        stale = [path for path, text in wanted.items() if _read(path) != text]
+        if argv[1] == '--check':
+            for path in stale:
+                print(f'{os.path.relpath(path, REPO)} differs from the parameter tables',
+                      file=sys.stderr)
+            return 1 if stale else 0
+        for path in stale:
+            with open(path, 'w', encoding='utf-8') as stream:
+                stream.write(wanted[path])
+            print(f'wrote {os.path.relpath(path, REPO)}')
+    elif len(argv) == 1:
+        sys.stdout.write(readme_tables(TABLES))
+    else:
+        print(__doc__, file=sys.stderr)
+        return 2
     return 0
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    sys.exit(main(sys.argv))

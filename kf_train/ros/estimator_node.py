@@ -94,132 +94,60 @@ out-of-sequence replay included). Every one runs with the same input contract, g
 filter needs ``process_noise_density`` > 0 on the train (Q = 0 otherwise: resampled
 particles never spread again).
 
-Every parameter can be changed at runtime; a change is validated as a whole and
-refused with a reason (the old values stay), except ``preset``, ``filter`` and the
-filter's tuning, which are read-only (they fix the state, the topics' types and the
-model: restart to change them). Noise and gate changes apply from the next
-measurement and restart the NIS window.
+Parameters: each is declared once, in :data:`kf_train.ros.estimator_params.PARAMETERS`
+(name, type, default, range or choices, live or not, unit, description); the README's
+table and config/kf_train.yaml are generated from it. Every parameter can be changed at
+runtime; a change is validated as a whole and refused with a reason (the old values
+stay), except ``preset``, ``filter``, the filter's tuning and the QoS, which are
+read-only (they fix the state, the topics' types and the model: restart to change
+them). Noise and gate changes apply from the next measurement and restart the NIS
+window.
 """
 
 import collections
-import dataclasses
 import math
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
-from kf_train.estimator.estimator import (
-    EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
-    LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, NS_PER_S,
-    PF_PARTICLES_RANGE, PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, Rejected,
-    RESTART_AFTER_STALE_RANGE, TrainEstimator, UKF_ALPHA_RANGE, UKF_BETA_RANGE,
-    UKF_KAPPA_RANGE)
-from kf_train.filters.chi2 import chi2_mean_bounds
-from kf_train.filters.family import FILTER_KINDS
+from kf_train.estimator.estimator import NS_PER_S, Rejected, TrainEstimator
 from kf_train.ros import messages
-from kf_train.ros.parameters import BIG, declare
+from kf_train.ros.diagnostics import Activity, filter_status, NodeCounts
+from kf_train.ros.estimator_params import (
+    changed_config, DEFAULTS, estimator_config, FRAME_PARAMETERS, NOISE_AND_GATE, PARAMETERS)
+from kf_train.ros.param_spec import ParameterError
+from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.runner import executor_option, run, StartupError
 from nav_msgs.msg import Odometry
 import numpy as np
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from std_srvs.srv import Trigger
 
+__all__ = ['DEFAULTS', 'EstimatorNode', 'main']
+
 QOS_DEPTH = 10
-QOS_DEPTH_RANGE = (1, 100_000)
+"""History depth of the publishers and of ~/set_state."""
 QOS_RELIABILITIES = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
                      'reliable': ReliabilityPolicy.RELIABLE}
 WARN_THROTTLE_S = 5.0
-# The node turns on what the seed-faithful core defaults leave off: out-of-sequence
-# fusion. The χ² gate stays off (1.0): with Q = 0 and the seed's wrong prior, valid
-# innovations reach a NIS of 25 on some seeds (seed 3), which a 0.9999 gate would
-# reject, and prior mode must reproduce the seed on any measurements. Real sensors:
-# set e.g. 0.999.
-DEFAULTS = dataclasses.replace(EstimatorSettings(), history_s=1.0, gate_probability=1.0)
-DEFAULT_PRESET = 'train'
-SETTING_NAMES = frozenset(field.name for field in dataclasses.fields(EstimatorSettings))
-FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
-NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
-                            'measurement_velocity_variance', 'gate_probability'))
-CONSISTENCY_CONFIDENCE = 0.99
-# Condition number of P above which the diagnostics warn: beyond ~1e12 a double
-# keeps only a few significant digits of the smaller eigen-direction.
-MAX_CONDITION = 1e12
-TIMEOUT_RANGE = (1e-3, 86400.0)
-DIAGNOSTICS_PERIOD_RANGE = (0.01, 3600.0)
-NIS_WINDOW_RANGE = (1, 1_000_000)
 
 
 class EstimatorNode(Node):
     """Estimates the train's (or a preset's) position and velocity, predicts them ahead."""
 
     def __init__(self, **kwargs):
-        """Declare parameters, build the filter and wire the topics."""
+        """Declare the parameters, build the filter and wire the topics."""
         super().__init__('estimator', **kwargs)
-        preset = declare(
-            self, 'preset', DEFAULT_PRESET,
-            'The filter: a seed preset (' + ', '.join(LIVE_PRESETS) + ') or the path of '
-            'a preset YAML file. It sets the model, the control topic and the defaults of '
-            'initial_state, initial_covariance, nominal_period_s and horizon_s. Fixed at '
-            'start-up (restart to change).',
-            constraints='one of: ' + ', '.join(LIVE_PRESETS) + ', or a .yaml path',
-            read_only=True)
         try:
-            preset_values = preset_defaults(preset)
-        except ValueError as error:
-            raise StartupError(f'invalid parameter: {error}') from None
-        values = self._declare_settings(preset_values)
-        values['preset'] = preset
-        self.frame_id = declare(self, 'frame_id', 'odom',
-                                'header.frame_id of estimate, prediction and innovation '
-                                '(REP 105).', constraints='a non-empty frame name')
-        self.child_frame_id = declare(self, 'child_frame_id', 'base_link',
-                                      'child_frame_id of estimate and prediction.',
-                                      constraints='a non-empty frame name')
-        self.timeout_s = declare(
-            self, 'timeout_s', 1.0,
-            'Without a fused measurement for this long [s] the diagnostics go to WARN '
-            'and the node logs it once.', float_range=TIMEOUT_RANGE)
-        self.diagnostics_period_s = declare(
-            self, 'diagnostics_period_s', 1.0,
-            'Period of /diagnostics [s], on the steady clock.',
-            float_range=DIAGNOSTICS_PERIOD_RANGE)
-        nis_window = declare(
-            self, 'nis_window', 100,
-            'How many of the latest updates the mean NIS in /diagnostics is taken over.',
-            int_range=NIS_WINDOW_RANGE)
-        self.reset_on_clock_jump = declare(
-            self, 'reset_on_clock_jump', True,
-            'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
-            'loop, a simulation reset).', constraints='true or false')
-        qos_reliability = declare(
-            self, 'qos_reliability', 'best_effort',
-            'Reliability of the measurement and control subscriptions: best_effort '
-            '(default; matches any publisher, drops rather than stalls) or reliable '
-            '(lossless with reliable publishers while the node keeps up). Fixed at '
-            'start-up.', constraints='one of: ' + ', '.join(QOS_RELIABILITIES),
-            read_only=True)
-        qos_depth = declare(
-            self, 'qos_depth', QOS_DEPTH,
-            'History depth of the measurement and control subscriptions (messages queued '
-            'while the node is busy). Fixed at start-up.', int_range=QOS_DEPTH_RANGE,
-            read_only=True)
-        if qos_reliability not in QOS_RELIABILITIES:
-            raise StartupError(f'invalid parameter: qos_reliability must be one of '
-                               f"{', '.join(QOS_RELIABILITIES)}, got {qos_reliability!r}")
-        try:
-            settings = EstimatorSettings(
-                **{name: _setting_value(name, value) for name, value in values.items()})
-            self.estimator = TrainEstimator(settings)
+            self.config = estimator_config(declare_table(self, PARAMETERS))
+            self.estimator = TrainEstimator(self.config.settings)
+        except ParameterError as error:
+            raise StartupError(str(error)) from None
         except ValueError as error:
             raise StartupError(f'invalid parameter: {error}') from None
         self.preset = self.estimator.preset
-        if not self.frame_id or not self.child_frame_id:
-            raise StartupError('invalid parameter: frame_id and child_frame_id must not '
-                               'be empty')
-
         self.received = 0
         self.fused = 0
         self.corrections = 0
@@ -229,8 +157,7 @@ class EstimatorNode(Node):
         self.rejected = 0
         self.set_state_refused = 0
         self.innovations = 0
-        self._nis = collections.deque(maxlen=nis_window)
-        self._bounds_cache = {}
+        self._nis = collections.deque(maxlen=self.config.options.nis_window)
         self._warned = {}
         self._start_mono = self._tick_mono = time.monotonic()
         self._last_fused_mono = None
@@ -238,16 +165,32 @@ class EstimatorNode(Node):
         self._timed_out = False
         self._last_clock_ns = 0
         self._last_diagnostics = None
+        self._create_interfaces()
+        watch_changes(self, lambda changes: changed_config(self.config, changes),
+                      self._apply_changes)
 
-        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=qos_depth,
-                         reliability=QOS_RELIABILITIES[qos_reliability])
+    @property
+    def frame_id(self) -> str:
+        """Return header.frame_id of the outputs."""
+        return self.config.options.frame_id
+
+    @property
+    def child_frame_id(self) -> str:
+        """Return child_frame_id of estimate and prediction."""
+        return self.config.options.child_frame_id
+
+    def _create_interfaces(self) -> None:
+        """Create the subscriptions, publishers, service and diagnostics timer."""
+        options = self.config.options
+        qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=options.qos_depth,
+                         reliability=QOS_RELIABILITIES[options.qos_reliability])
         # Outgoing messages are filled in place (messages.EstimateWriter): per message
         # only the changed fields are written, nothing is allocated.
         self._estimate_writer = messages.EstimateWriter(
-            self.frame_id, self.child_frame_id, self.preset.dim_x)
+            options.frame_id, options.child_frame_id, self.preset.dim_x)
         self._prediction_writer = messages.EstimateWriter(
-            self.frame_id, self.child_frame_id, self.preset.dim_x)
-        self._innovation_writer = messages.InnovationWriter(self.frame_id)
+            options.frame_id, options.child_frame_id, self.preset.dim_x)
+        self._innovation_writer = messages.InnovationWriter(options.frame_id)
         self.control_subscription = None
         if self.preset.control_names:
             # Created before the measurement subscription: when a control and its
@@ -272,163 +215,31 @@ class EstimatorNode(Node):
             Odometry, '~/set_state', self._on_set_state, QOS_DEPTH)
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset_request)
         self._diagnostics_timer = self.create_timer(
-            self.diagnostics_period_s, self._on_diagnostics_timer,
+            options.diagnostics_period_s, self._on_diagnostics_timer,
             clock=Clock(clock_type=ClockType.STEADY_TIME))
-        self.add_on_set_parameters_callback(self._on_set_parameters)
-
-    def _declare_settings(self, preset: dict) -> dict:
-        """Declare the parameters that configure the core estimator; return their values."""
-        live = 'Takes effect from the next measurement.'
-        at_init = 'Used when the filter (re)initialises.'
-        default = "Default: the preset's. "
-        fixed = ' Fixed at start-up (restart to change).'
-        return {
-            'filter': declare(
-                self, 'filter', DEFAULTS.filter,
-                'The filter: kf (exact linear Kalman filter, default), ekf (the same on '
-                'these linear presets), ukf (unscented, ukf_alpha/beta/kappa) or pf '
-                '(bootstrap particle filter, pf_particles/pf_seed/pf_resample_threshold; '
-                'give it process_noise_density > 0, or its particles collapse).' + fixed,
-                constraints='one of: ' + ', '.join(FILTER_KINDS), read_only=True),
-            'ukf_alpha': declare(
-                self, 'ukf_alpha', DEFAULTS.ukf_alpha,
-                'UKF sigma-point spread alpha > 0.' + fixed, float_range=UKF_ALPHA_RANGE,
-                read_only=True),
-            'ukf_beta': declare(
-                self, 'ukf_beta', DEFAULTS.ukf_beta,
-                'UKF beta (2 is optimal for Gaussians).' + fixed, float_range=UKF_BETA_RANGE,
-                read_only=True),
-            'ukf_kappa': declare(
-                self, 'ukf_kappa', DEFAULTS.ukf_kappa,
-                'UKF kappa (n + kappa > 0).' + fixed, float_range=UKF_KAPPA_RANGE,
-                read_only=True),
-            'pf_particles': declare(
-                self, 'pf_particles', DEFAULTS.pf_particles,
-                'Particle filter: number of particles.' + fixed, int_range=PF_PARTICLES_RANGE,
-                read_only=True),
-            'pf_seed': declare(
-                self, 'pf_seed', DEFAULTS.pf_seed,
-                'Particle filter: seed; its generator restarts from it at every '
-                '(re)initialisation, so a run is reproducible bit for bit.' + fixed,
-                int_range=PF_SEED_RANGE, read_only=True),
-            'pf_resample_threshold': declare(
-                self, 'pf_resample_threshold', DEFAULTS.pf_resample_threshold,
-                'Particle filter: resample (systematic) when the effective sample size '
-                'falls below this fraction of pf_particles.' + fixed,
-                float_range=PF_RESAMPLE_THRESHOLD_RANGE, read_only=True),
-            'initial_state': declare(
-                self, 'initial_state', list(preset['initial_state']),
-                'Initial [position m, velocity m/s] ([position m] for the robot); in '
-                'first_measurement mode only the unmeasured velocity is used. ' + default
-                + at_init, constraints='one finite double per state'),
-            'initial_covariance': declare(
-                self, 'initial_covariance', list(preset['initial_covariance']),
-                'Initial covariance [m², m²/s²]: the diagonal (one value per state) or the '
-                'full row-major matrix, symmetric positive semi-definite. ' + default
-                + at_init, constraints='n or n² finite doubles, symmetric PSD'),
-            'process_noise_density': declare(
-                self, 'process_noise_density', DEFAULTS.process_noise_density,
-                'White-noise acceleration density q [m²/s³]: Q(dt) = q [[dt³/3, dt²/2], '
-                "[dt²/2, dt]], added to the preset's process noise (train: 0, as seed 000, "
-                'which trusts the constant-velocity model fully). Must be 0 for the robot. '
-                + live, float_range=(0.0, BIG)),
-            'measurement_variance': declare(
-                self, 'measurement_variance', DEFAULTS.measurement_variance,
-                'Position measurement variance R [m²] overriding the message '
-                'pose.covariance[0]; 0 uses the message. ' + live, float_range=(0.0, BIG)),
-            'measurement_velocity_variance': declare(
-                self, 'measurement_velocity_variance',
-                DEFAULTS.measurement_velocity_variance,
-                'Velocity measurement variance [m²/s²] overriding the message '
-                'twist.covariance[0] (presets measuring the velocity); 0 uses the '
-                'message. ' + live, float_range=(0.0, BIG)),
-            'horizon_s': declare(
-                self, 'horizon_s', preset['horizon_s'],
-                'How far ahead the prediction is [s] (0: the prediction is the estimate). '
-                + default + live, float_range=(0.0, 86400.0)),
-            'initialization': declare(
-                self, 'initialization', DEFAULTS.initialization,
-                'first_measurement: the first measurement sets the position, the velocity '
-                'starts wide; prior: initial_state/initial_covariance hold '
-                'nominal_period_s before the first stamp (seed 000). ' + at_init,
-                constraints='one of: ' + ', '.join(INITIALIZATIONS)),
-            'nominal_period_s': declare(
-                self, 'nominal_period_s', preset['nominal_period_s'],
-                'Prior mode: how long before the first stamp the prior holds [s]. '
-                + default + at_init, float_range=(1e-6, 3600.0)),
-            'first_velocity_std_mps': declare(
-                self, 'first_velocity_std_mps', DEFAULTS.first_velocity_std_mps,
-                'first_measurement mode: standard deviation of the initial velocity '
-                '[m/s]. ' + at_init, float_range=(1e-6, 1e6)),
-            'history_s': declare(
-                self, 'history_s', DEFAULTS.history_s,
-                'Out-of-sequence window [s]: a measurement older than the newest fused one '
-                'by less than this is fused by rewinding and replaying; older ones are '
-                'rejected as stale. 0 accepts only increasing stamps. ' + live,
-                float_range=HISTORY_S_RANGE),
-            'gate_probability': declare(
-                self, 'gate_probability', DEFAULTS.gate_probability,
-                'χ² gate: a measurement whose NIS exceeds the χ²(m) quantile of this '
-                'probability is rejected as an outlier; 1 (default) disables the gate, so '
-                'that prior mode reproduces the seeds on any data. For real sensors use '
-                'e.g. 0.999. ' + live,
-                float_range=GATE_PROBABILITY_RANGE),
-            'max_consecutive_outliers': declare(
-                self, 'max_consecutive_outliers', DEFAULTS.max_consecutive_outliers,
-                'After this many gate (or numerical) rejections in a row the filter '
-                'resets and the next measurement initialises it. ' + live,
-                int_range=MAX_CONSECUTIVE_OUTLIERS_RANGE),
-            'restart_after_stale': declare(
-                self, 'restart_after_stale', DEFAULTS.restart_after_stale,
-                'After this many stale measurements in a row the stream counts as '
-                'restarted: the filter resets and initialises from the last one. ' + live,
-                int_range=RESTART_AFTER_STALE_RANGE),
-            'max_future_s': declare(
-                self, 'max_future_s', DEFAULTS.max_future_s,
-                'A stamp more than this [s] ahead of the node clock is rejected (not '
-                'checked while a simulated clock is still 0). ' + live,
-                float_range=MAX_FUTURE_S_RANGE),
-            'expected_frame_id': declare(
-                self, 'expected_frame_id', DEFAULTS.expected_frame_id,
-                "Required header.frame_id of measurements; '' accepts any. " + live,
-                constraints="a frame name, or '' for any"),
-        }
 
     # -- parameters -------------------------------------------------------------------
 
-    def _on_set_parameters(self, parameters) -> SetParametersResult:
-        """Validate a change as a whole; apply it only if all of it is valid."""
-        changes = {}
-        node_values = {}
-        for parameter in parameters:
-            name, value = parameter.name, parameter.value
-            if name in FRAME_PARAMETERS and not value:
-                return SetParametersResult(successful=False, reason=f'{name} must not be empty')
-            if name in SETTING_NAMES:
-                changes[name] = value
-            elif name in FRAME_PARAMETERS or name in (
-                    'timeout_s', 'diagnostics_period_s', 'nis_window', 'reset_on_clock_jump'):
-                node_values[name] = value
-        try:
-            changes = {name: _setting_value(name, value) for name, value in changes.items()}
-            settings = dataclasses.replace(self.estimator.settings, **changes).validated()
-        except (ValueError, TypeError) as error:
-            return SetParametersResult(successful=False, reason=str(error))
-        self.estimator.reconfigure(settings)
-        for name, value in node_values.items():
-            if name == 'nis_window':
-                self._nis = collections.deque(self._nis, maxlen=value)
-            elif name == 'diagnostics_period_s':
-                self._diagnostics_timer.timer_period_ns = int(value * NS_PER_S)
-                self._diagnostics_timer.reset()
-            setattr(self, name, value)
-        if FRAME_PARAMETERS[0] in node_values or FRAME_PARAMETERS[1] in node_values:
+    def _apply_changes(self, changes: dict) -> None:
+        """Apply a change rclpy has stored (the on-set callback validated it)."""
+        old = self.config
+        self.config = changed_config(old, changes)
+        options = self.config.options
+        if self.config.settings != old.settings:
+            self.estimator.reconfigure(self.config.settings)
+        if options.nis_window != old.options.nis_window:
+            self._nis = collections.deque(self._nis, maxlen=options.nis_window)
+        if options.diagnostics_period_s != old.options.diagnostics_period_s:
+            self._diagnostics_timer.timer_period_ns = int(
+                options.diagnostics_period_s * NS_PER_S)
+            self._diagnostics_timer.reset()
+        if any(getattr(options, name) != getattr(old.options, name)
+               for name in FRAME_PARAMETERS):
             for writer in (self._estimate_writer, self._prediction_writer):
-                writer.set_frames(self.frame_id, self.child_frame_id)
-            self._innovation_writer.set_frame(self.frame_id)
+                writer.set_frames(options.frame_id, options.child_frame_id)
+            self._innovation_writer.set_frame(options.frame_id)
         if NOISE_AND_GATE & changes.keys():
             self._nis.clear()  # the old NIS values judged the old tuning
-        return SetParametersResult(successful=True)
 
     # -- measurements -----------------------------------------------------------------
 
@@ -542,7 +353,7 @@ class EstimatorNode(Node):
         last, self._last_clock_ns = self._last_clock_ns, now_ns
         if now_ns < last:
             jump = f'node clock jumped back {(last - now_ns) / NS_PER_S:.3f} s'
-            if not self.reset_on_clock_jump:
+            if not self.config.options.reset_on_clock_jump:
                 self.get_logger().warning(f'{jump}; not resetting (reset_on_clock_jump false)')
             elif self.estimator.initialized:
                 self.estimator.reset('clock_jump')
@@ -579,110 +390,32 @@ class EstimatorNode(Node):
 
     # -- diagnostics --------------------------------------------------------------------
 
-    def _nis_bounds(self, count: int):
-        """Return (cached) 99% bounds of the mean of count NIS values."""
-        key = (count, self.estimator.model.dim_z)
-        if key not in self._bounds_cache:
-            if len(self._bounds_cache) > 1000:
-                self._bounds_cache.clear()
-            self._bounds_cache[key] = chi2_mean_bounds(count, key[1], CONSISTENCY_CONFIDENCE)
-        return self._bounds_cache[key]
-
     def _on_diagnostics_timer(self) -> None:
         """Publish /diagnostics and say once when measurements stop."""
         self._check_clock()
         now = time.monotonic()
         elapsed = max(now - self._tick_mono, 1e-9)
-        input_rate = (self.received - self._received_at_tick) / elapsed
-        fused_rate = (self.fused - self._fused_at_tick) / elapsed
+        since = self._last_fused_mono if self._last_fused_mono is not None else self._start_mono
+        activity = Activity((self.received - self._received_at_tick) / elapsed,
+                            (self.fused - self._fused_at_tick) / elapsed, now - since,
+                            self._last_fused_mono is not None)
         self._tick_mono, self._received_at_tick, self._fused_at_tick = (
             now, self.received, self.fused)
-        warnings = []
-        since = self._last_fused_mono if self._last_fused_mono is not None else self._start_mono
-        age = now - since
-        if age > self.timeout_s:
-            what = ('no measurement fused yet' if self._last_fused_mono is None
-                    else 'no measurement fused')
-            warnings.append(f'{what} for {age:.1f} s (timeout_s {self.timeout_s:g})')
-            if not self._timed_out:
-                self.get_logger().warning(warnings[-1])
-                self._timed_out = True
-        elif self._timed_out:
+        counts = NodeCounts(self.received, self.fused, self.rejected, self.set_state_refused,
+                            self.controls_received, self.controls_rejected)
+        status = filter_status(self.estimator, counts, activity,
+                               self.config.options.timeout_s, self._nis)
+        if status.timeout_warning is not None and not self._timed_out:
+            self.get_logger().warning(status.timeout_warning)
+            self._timed_out = True
+        elif status.timeout_warning is None and self._timed_out:
             self.get_logger().info('measurements are being fused again')
             self._timed_out = False
-        settings = self.estimator.settings
-        values = [
-            ('preset', self.preset.name),
-            ('filter', settings.filter),
-            ('initialized', str(self.estimator.initialized).lower()),
-            ('input_rate_hz', f'{input_rate:.3f}'),
-            ('fused_rate_hz', f'{fused_rate:.3f}'),
-            ('last_measurement_age_s',
-             'never' if self._last_fused_mono is None else f'{age:.3f}'),
-            ('received', str(self.received)),
-            ('fused', str(self.fused)),
-            ('fused_out_of_sequence', str(self.estimator.out_of_sequence_count)),
-            ('rejected', str(self.rejected)),
-        ]
-        values += [(f'rejected.{reason}', str(count))
-                   for reason, count in self.estimator.rejection_counts.items()]
-        resets = self.estimator.reset_counts
-        values.append(('resets', str(sum(resets.values()))))
-        values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
-        values.append(('set_state_refused', str(self.set_state_refused)))
-        if self.estimator.has_control:
-            values.append(('controls_received', str(self.controls_received)))
-            values += [(f'controls.{key}', str(count))
-                       for key, count in self.estimator.control_counts.items()]
-            values.append(('controls_rejected', str(self.controls_rejected)))
-            values += [(f'controls_rejected.{reason}', str(count)) for reason, count
-                       in self.estimator.control_rejection_counts.items()]
-        model = self.estimator.model
-        regularisations = getattr(model, 'regularisations', None)
-        if regularisations is not None:
-            values.append(('ukf_regularisations', str(regularisations)))
-        if settings.filter == 'pf' and self.estimator.initialized:
-            # The particles last stepped: those of the newest estimate.
-            values += [('pf_ess', f'{model.filter.ess:.1f}'),
-                       ('pf_resample_count', str(model.filter.resample_count))]
-        values += [('gate_probability', f'{settings.gate_probability:g}'),
-                   ('gate_threshold', f'{self.estimator.gate_threshold:.6g}')]
-        count = len(self._nis)
-        values.append(('nis_window_count', str(count)))
-        if count:
-            mean = math.fsum(self._nis) / count
-            lower, upper = self._nis_bounds(count)
-            values += [('nis_window_mean', f'{mean:.6g}'),
-                       ('nis_lower_99', f'{lower:.6g}'), ('nis_upper_99', f'{upper:.6g}')]
-            if mean > upper:
-                warnings.append(f'inconsistent: noise parameters too small (mean NIS '
-                                f'{mean:.3g} > {upper:.3g} over {count} updates)')
-            elif mean < lower:
-                warnings.append(f'inconsistent: noise parameters too large (mean NIS '
-                                f'{mean:.3g} < {lower:.3g} over {count} updates)')
-        state = self.estimator.state
-        if state is not None:
-            condition = float(np.linalg.cond(state[1]))
-            values.append(('covariance_condition', f'{condition:.6g}'))
-            if not condition <= MAX_CONDITION:
-                warnings.append(f'ill-conditioned covariance (condition {condition:.3g})')
-        if warnings:
-            level, message = 'WARN', '; '.join(warnings)
-        else:
-            level = 'OK'
-            message = 'ok' if self.estimator.initialized else 'waiting for measurements'
-        now_ns = self.get_clock().now().nanoseconds
-        msg = messages.to_diagnostics_msg(now_ns, f'{self.get_name()}: filter', 'kf_train',
-                                          level, message, values)
+        msg = messages.to_diagnostics_msg(
+            self.get_clock().now().nanoseconds, f'{self.get_name()}: filter', 'kf_train',
+            status.level, status.message, status.values)
         self._last_diagnostics = msg
         self.diagnostics_pub.publish(msg)
-
-
-def _setting_value(name: str, value):
-    """Return a parameter value in the form EstimatorSettings keeps it."""
-    if name in ('initial_state', 'initial_covariance'):
-        return tuple(float(v) for v in value)
-    return value
 
 
 def main(args=None) -> int:

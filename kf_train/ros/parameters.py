@@ -1,38 +1,83 @@
-"""Parameter declaration helpers: every parameter gets a descriptor with a range."""
+"""
+A node's parameter table in rclpy: descriptors, declaration, and validate-then-apply changes.
 
-from typing import Any, Optional, Tuple
+The tables themselves are pure (:mod:`kf_train.ros.param_spec`); this is the only
+parameter code that needs rclpy. A runtime change goes the way rclpy's design (and
+demo_nodes_py's set_parameters_callback) lays out: rclpy checks each value against its
+descriptor (type, range, read-only), the on-set callback validates the change as a
+whole without side effects, and the post-set callback applies it.
+"""
 
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from typing import Any, Callable, Dict
+
+from kf_train.ros.param_spec import ParameterError, ParamSpec, ParamTable
+from rcl_interfaces.msg import (
+    FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
 from rclpy.node import Node
 
-# Largest double range bound we advertise; rclpy compares with it inclusively.
-BIG = 1e12
+
+def descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    """Return the ParameterDescriptor of a spec: what ``ros2 param describe`` shows."""
+    result = ParameterDescriptor(description=spec.description,
+                                 additional_constraints=spec.additional_constraints
+                                 if spec.range is None else '',
+                                 read_only=not spec.live)
+    if spec.range is not None and spec.type == 'double':
+        result.floating_point_range = [FloatingPointRange(
+            from_value=float(spec.range[0]), to_value=float(spec.range[1]), step=0.0)]
+    elif spec.range is not None:
+        result.integer_range = [IntegerRange(
+            from_value=int(spec.range[0]), to_value=int(spec.range[1]), step=0)]
+    return result
 
 
-def declare(node: Node, name: str, default: Any, description: str, *,
-            float_range: Optional[Tuple[float, float]] = None,
-            int_range: Optional[Tuple[int, int]] = None,
-            constraints: str = '', read_only: bool = False) -> Any:
-    """Declare ``name`` with a descriptor and return its (possibly overridden) value."""
-    descriptor = ParameterDescriptor(description=description,
-                                     additional_constraints=constraints,
-                                     read_only=read_only)
-    if float_range is not None:
-        descriptor.floating_point_range = [FloatingPointRange(
-            from_value=float(float_range[0]), to_value=float(float_range[1]), step=0.0)]
-    if int_range is not None:
-        descriptor.integer_range = [IntegerRange(
-            from_value=int(int_range[0]), to_value=int(int_range[1]), step=0)]
-    return node.declare_parameter(name, default, descriptor).value
+def declare_table(node: Node, table: ParamTable) -> Dict[str, Any]:
+    """
+    Declare every parameter of ``table`` on ``node``; return their values.
+
+    The key parameter (the preset, the scenario) goes first: the defaults of the
+    derived ones depend on its value (a bad one raises ParameterError). rclpy checks
+    each override against its descriptor and raises with its own text, which
+    kf_train.ros.runner turns into the same line the table gives.
+    """
+    values = {}
+    if table.key:
+        key_spec = table.spec(table.key)
+        values[table.key] = _declare(node, key_spec, key_spec.default)
+    defaults = table.defaults(values.get(table.key))
+    for spec in table.specs:
+        if spec.name not in values:
+            values[spec.name] = _declare(node, spec, defaults[spec.name])
+    return values
 
 
-def allowed(node: Node, name: str) -> str:
-    """Return a short text of what ``name`` accepts, from its descriptor."""
-    descriptor = node.describe_parameter(name)
-    if descriptor.floating_point_range:
-        r = descriptor.floating_point_range[0]
-        return f'a double in [{r.from_value:g}, {r.to_value:g}]'
-    if descriptor.integer_range:
-        r = descriptor.integer_range[0]
-        return f'an integer in [{r.from_value}, {r.to_value}]'
-    return descriptor.additional_constraints or 'see the parameter description'
+def _declare(node: Node, spec: ParamSpec, default) -> Any:
+    """Declare one parameter; return its value (arrays as lists)."""
+    value = node.declare_parameter(spec.name, default, descriptor(spec)).value
+    return list(value) if spec.type == 'double_array' else value
+
+
+def watch_changes(node: Node, validate: Callable[[Dict[str, Any]], Any],
+                  apply: Callable[[Dict[str, Any]], None]) -> None:
+    """
+    Validate parameter changes with ``validate`` and apply them with ``apply``.
+
+    ``validate(changes)`` must have no side effects and raise ParameterError for an
+    invalid change (its reason is the answer; the old values stay); ``apply(changes)``
+    runs once rclpy has stored the new values. ``changes`` maps name to new value.
+    """
+    def on_set(parameters) -> SetParametersResult:
+        try:
+            validate(_changes(parameters))
+        except ParameterError as error:
+            return SetParametersResult(successful=False, reason=error.reason)
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(on_set)
+    node.add_post_set_parameters_callback(lambda parameters: apply(_changes(parameters)))
+
+
+def _changes(parameters) -> Dict[str, Any]:
+    """Return {name: value} of a parameter list (arrays as lists)."""
+    return {parameter.name: list(parameter.value) if type(parameter.value).__name__ in (
+        'array', 'tuple') else parameter.value for parameter in parameters}

@@ -13,6 +13,7 @@ import sys
 import threading
 from typing import Callable, List, Optional, Tuple
 
+from kf_train.ros.param_spec import out_of_range_line, ParameterError, wrong_type_line
 import rclpy
 from rclpy.exceptions import (
     InvalidParameterTypeException, InvalidParameterValueException)
@@ -64,7 +65,7 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
             raise
         return EXIT_OK
     except (InvalidParameterValueException, InvalidParameterTypeException,
-            StartupError) as error:
+            ParameterError, StartupError) as error:
         print(f'error: {_one_line(error)}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     finally:
@@ -92,16 +93,11 @@ def _one_line(error: Exception) -> str:
     text = ' '.join(str(error).split())
     match = _OUT_OF_RANGE.search(text)
     if match:
-        kind = 'an integer' if match['low'].lstrip('-').isdigit() else 'a double'
-        return (f"invalid parameter {match['name']}:={match['value']}: must be {kind} in "
-                f"[{match['low']}, {match['high']}]")
+        return out_of_range_line(match['name'], match['value'], match['low'], match['high'],
+                                 integer=match['low'].lstrip('-').isdigit())
     match = _WRONG_TYPE.search(text)
     if match:
-        hint = ''
-        if (match['want'], match['got']) == ('DOUBLE', 'INTEGER'):
-            hint = f" (write {match['value']}.0)"
-        return (f"invalid parameter {match['name']}:={match['value']}: must be of type "
-                f"{match['want']}, not {match['got']}{hint}")
+        return wrong_type_line(match['name'], match['value'], match['want'], match['got'])
     return text
 
 
@@ -186,7 +182,7 @@ def _run_other_executor(make_node: Callable[[], Node], args: Optional[List[str]]
     except (KeyboardInterrupt, ExternalShutdownException):
         return EXIT_OK
     except (InvalidParameterValueException, InvalidParameterTypeException,
-            StartupError) as error:
+            ParameterError, StartupError) as error:
         print(f'error: {_one_line(error)}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     finally:

@@ -44,20 +44,18 @@ sample's stamp on ``/clock`` (rosgraph_msgs/Clock), so that nodes with
 ``use_sim_time`` see the clock jump too.
 """
 
-import dataclasses
 import heapq
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from kf_train.estimator.estimator import NS_PER_S
 from kf_train.ros import messages
-from kf_train.ros.parameters import BIG, declare
+from kf_train.ros.param_spec import ParameterError
+from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.runner import run, StartupError
-from kf_train.sim.faults import FaultInjector, FaultSettings
-from kf_train.sim.scenario_streams import (
-    CAR_ACCELERATION_MPS2, CONTROL_NAMES, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
-    make_stream, ROBOT_SPEED_STD_MPS, SCENARIOS)
+from kf_train.ros.simulator_params import changed_config, PARAMETERS, simulator_config
+from kf_train.sim.faults import FaultInjector
+from kf_train.sim.scenario_streams import CONTROL_NAMES, make_stream
 from nav_msgs.msg import Odometry
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.node import Node
@@ -67,90 +65,25 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 QOS_DEPTH = 10
 # How long a finished simulator waits for its last samples to be acknowledged.
 FLUSH_TIMEOUT_S = 2.0
-# Fault parameter -> FaultSettings field.
-FAULT_PARAMETERS = {
-    'dropout_probability': 'dropout_probability',
-    'outlier_probability': 'outlier_probability',
-    'outlier_size_m': 'outlier_size_m',
-    'delay_s': 'delay_s',
-    'reorder_probability': 'reorder_probability',
-    'clock_jump_at_s': 'clock_jump_at_s',
-    'clock_jump_s': 'clock_jump_s',
-    'measurement_bias_m': 'bias_m',
-}
 
 
 class SimulatorNode(Node):
     """Publishes simulated measurements (and controls) of a seed scenario and the truth."""
 
     def __init__(self, **kwargs):
-        """Declare parameters, create publishers and start the sampling timer."""
+        """Declare the parameters, create the publishers and start the sampling timer."""
         super().__init__('simulator', **kwargs)
-        fixed = 'Fixed at start-up (restart to change).'
-        default = "Default: the scenario's. "
-        self.scenario = declare(
-            self, 'scenario', 'train',
-            'What is simulated: train (seed 000), car / car-exact (seed 001, publishes '
-            'control as AccelStamped), robot / robot-exact (seed 002, publishes control '
-            'as TwistStamped). ' + fixed, constraints='one of: ' + ', '.join(SCENARIOS),
-            read_only=True)
-        if self.scenario not in SCENARIOS:
-            raise StartupError('invalid parameter: scenario must be one of '
-                               f"{', '.join(SCENARIOS)}, got {self.scenario!r}")
-        scenario_position, scenario_velocity = DEFAULT_INITIAL_STATE[self.scenario]
-        self.rate_hz = declare(self, 'rate_hz', 10.0, 'Sample rate [Hz]. ' + fixed,
-                               float_range=(0.01, 10000.0), read_only=True)
-        velocity = declare(self, 'true_velocity', scenario_velocity,
-                           "True velocity [m/s]: the train's constant one, the car's "
-                           'initial one (robot: not used). ' + default + fixed,
-                           float_range=(-1000.0, 1000.0), read_only=True)
-        position = declare(self, 'initial_position', scenario_position,
-                           'True position at the start time [m] (robot: added to the '
-                           "seed's trajectory). " + default + fixed,
-                           float_range=(-BIG, BIG), read_only=True)
-        noise_std = declare(self, 'noise_std', DEFAULT_NOISE_STD_M[self.scenario],
-                            'Standard deviation of the position measurement noise [m]; '
-                            'its square is published as the measurement variance. '
-                            + default, float_range=(0.0, 1000.0))
-        acceleration = declare(self, 'acceleration_mps2', CAR_ACCELERATION_MPS2,
-                               'car: the commanded acceleration [m/s²], published on '
-                               'control. ' + fixed, float_range=(-1000.0, 1000.0),
-                               read_only=True)
-        speed_noise_std = declare(self, 'speed_noise_std', ROBOT_SPEED_STD_MPS,
-                                  'robot: standard deviation of the speed sensor [m/s] '
-                                  'whose readings are published on control.',
-                                  float_range=(0.0, 1000.0))
-        seed = declare(self, 'seed', 0,
-                       'Seed of the measurement noise and of the faults; -1 draws fresh '
-                       'entropy. ' + fixed, int_range=(-1, 2 ** 31 - 1), read_only=True)
-        self.frame_id = declare(self, 'frame_id', 'odom',
-                                'Frame of the measurements and the truth (REP 105).',
-                                constraints='a non-empty frame name')
-        self.child_frame_id = declare(self, 'child_frame_id', 'base_link',
-                                      'child_frame_id of the ground truth odometry.',
-                                      constraints='a non-empty frame name')
-        self.max_samples = declare(self, 'max_samples', 0,
-                                   'Samples to publish before finishing; 0 runs forever.',
-                                   int_range=(0, 2 ** 31 - 1))
-        self.min_subscribers = declare(self, 'min_subscribers', 0,
-                                       'Subscribers of measurement (and of control, '
-                                       'for car and robot) to wait for before the first '
-                                       'sample.', int_range=(0, 1000))
-        self.publish_clock = declare(self, 'publish_clock', False,
-                                     'Publish each sample stamp on /clock (for nodes '
-                                     'with use_sim_time).', constraints='true or false')
-        faults = self._declare_faults()
-        if not self.frame_id or not self.child_frame_id:
-            raise StartupError('frame_id and child_frame_id must not be empty')
-        self.simulation = make_stream(
-            self.scenario, self.rate_hz, None if seed < 0 else seed, noise_std_m=noise_std,
-            initial_position_m=position, velocity_mps=velocity,
-            acceleration_mps2=acceleration, speed_noise_std_mps=speed_noise_std)
         try:
-            self.faults = FaultInjector(faults, None if seed < 0 else seed)
-        except ValueError as error:
-            raise StartupError(f'invalid parameter: {error}') from None
-        self.add_on_set_parameters_callback(self._on_set_parameters)
+            self.config = simulator_config(declare_table(self, PARAMETERS))
+        except ParameterError as error:
+            raise StartupError(str(error)) from None
+        config = self.config
+        seed = None if config.seed < 0 else config.seed
+        self.scenario, self.rate_hz = config.scenario, config.rate_hz
+        self.simulation = make_stream(config.scenario, config.rate_hz, seed, **config.stream)
+        self.faults = FaultInjector(config.faults, seed)
+        watch_changes(self, lambda changes: changed_config(self.config, changes),
+                      self._apply_changes)
 
         self.measurement_pub = self.create_publisher(
             PoseWithCovarianceStamped, 'measurement', QOS_DEPTH)
@@ -174,79 +107,32 @@ class SimulatorNode(Node):
                                                  clock=self._steady, autostart=False)
         self._timer = self.create_timer(1.0 / self.rate_hz, self._on_timer)
 
-    def _declare_faults(self) -> FaultSettings:
-        """Declare the fault-injection parameters; return them as FaultSettings."""
-        live = 'Changeable at runtime; applies from the next sample. Default off.'
-        probability = (0.0, 1.0)
-        values = {
-            'dropout_probability': declare(
-                self, 'dropout_probability', 0.0,
-                'Probability that a sample is lost. ' + live, float_range=probability),
-            'outlier_probability': declare(
-                self, 'outlier_probability', 0.0,
-                'Probability that a sample is off by ±outlier_size_m. ' + live,
-                float_range=probability),
-            'outlier_size_m': declare(
-                self, 'outlier_size_m', 10.0,
-                'Size of an outlier [m], added with a random sign. ' + live,
-                float_range=(0.0, 1e6)),
-            'delay_s': declare(
-                self, 'delay_s', 0.0,
-                'Latency between taking and publishing a sample [s]. ' + live,
-                float_range=(0.0, 60.0)),
-            'reorder_probability': declare(
-                self, 'reorder_probability', 0.0,
-                'Probability that a sample is published after the next one. ' + live,
-                float_range=probability),
-            'clock_jump_at_s': declare(
-                self, 'clock_jump_at_s', 0.0,
-                'Sample time [s] from which clock_jump_s is added to every stamp; '
-                '0 = never. ' + live, float_range=(0.0, 1e9)),
-            'clock_jump_s': declare(
-                self, 'clock_jump_s', 0.0,
-                'Stamp jump [s] from clock_jump_at_s on; negative jumps back (a '
-                'restarted sensor clock). ' + live, float_range=(-1e9, 1e9)),
-            'measurement_bias_m': declare(
-                self, 'measurement_bias_m', 0.0,
-                'Constant bias added to every measurement [m]. ' + live,
-                float_range=(-1e6, 1e6)),
-        }
-        return FaultSettings(**{FAULT_PARAMETERS[name]: value
-                                for name, value in values.items()})
+    @property
+    def options(self):
+        """Return the runtime options: frames, max_samples, min_subscribers, publish_clock."""
+        return self.config.options
 
-    def _on_set_parameters(self, parameters) -> SetParametersResult:
-        """Apply noise, fault, frame and limit changes; rclpy checked the ranges already."""
-        fault_changes = {}
-        for parameter in parameters:
-            if parameter.name in ('frame_id', 'child_frame_id') and not parameter.value:
-                return SetParametersResult(successful=False,
-                                           reason=f'{parameter.name} must not be empty')
-            if parameter.name in FAULT_PARAMETERS:
-                fault_changes[FAULT_PARAMETERS[parameter.name]] = parameter.value
-        try:
-            faults = dataclasses.replace(self.faults.settings, **fault_changes).validated()
-        except ValueError as error:
-            return SetParametersResult(successful=False, reason=str(error))
-        self.faults.reconfigure(faults)
-        for parameter in parameters:
-            if parameter.name == 'noise_std':
-                self.simulation.noise_std_m = float(parameter.value)
-            elif parameter.name == 'speed_noise_std' and hasattr(
-                    self.simulation, 'speed_noise_std_mps'):
-                self.simulation.speed_noise_std_mps = float(parameter.value)
-            elif parameter.name in ('frame_id', 'child_frame_id', 'max_samples',
-                                    'min_subscribers', 'publish_clock'):
-                setattr(self, parameter.name, parameter.value)
-        return SetParametersResult(successful=True)
+    def _apply_changes(self, changes: dict) -> None:
+        """Apply noise, fault, frame and limit changes (the on-set callback validated them)."""
+        old = self.config
+        self.config = changed_config(old, changes)
+        if self.config.faults != old.faults:
+            self.faults.reconfigure(self.config.faults)
+        stream = self.config.stream
+        if 'noise_std' in changes:
+            self.simulation.noise_std_m = float(stream['noise_std_m'])
+        if 'speed_noise_std' in changes and hasattr(self.simulation, 'speed_noise_std_mps'):
+            self.simulation.speed_noise_std_mps = float(stream['speed_noise_std_mps'])
 
     def _on_timer(self) -> None:
         """Publish the next sample once enough subscribers are there."""
         if self.done.done() or self._sampling_done:
             return
+        options = self.options
         if self._start_ns is None:
-            if self.measurement_pub.get_subscription_count() < self.min_subscribers or (
+            if self.measurement_pub.get_subscription_count() < options.min_subscribers or (
                     self.control_pub is not None
-                    and self.control_pub.get_subscription_count() < self.min_subscribers):
+                    and self.control_pub.get_subscription_count() < options.min_subscribers):
                 return
             self._start_ns = (self.get_clock().now().nanoseconds
                               - round(NS_PER_S / self.rate_hz))
@@ -254,26 +140,26 @@ class SimulatorNode(Node):
         stamp_ns = self._start_ns + round(sample.index * NS_PER_S / self.rate_hz)
         variance = self.simulation.noise_std_m ** 2
         truth_stamp_ns = self.faults.jumped_stamp_ns(sample.t_s, stamp_ns)
-        if self.publish_clock:
+        if options.publish_clock:
             if self.clock_pub is None:
                 self.clock_pub = self.create_publisher(ClockMsg, '/clock', QOS_DEPTH)
             self.clock_pub.publish(messages.to_clock_msg(truth_stamp_ns))
         if self.control_pub is not None:
             # The input over (t_{k-1}, t_k], stamped t_k, out before the measurement t_k.
             self.control_pub.publish(self._control_msg(
-                truth_stamp_ns, self.child_frame_id, sample.control))
+                truth_stamp_ns, options.child_frame_id, sample.control))
         deliveries = self.faults.apply(sample.index, sample.t_s, stamp_ns,
                                        sample.measured_position_m)
         self.published += 1
-        if self.max_samples and self.published >= self.max_samples:
+        if options.max_samples and self.published >= options.max_samples:
             deliveries += self.faults.flush()
             self._sampling_done = True
             self._timer.cancel()
         for delivery in deliveries:
             self._send(messages.to_measurement_msg(
-                delivery.stamp_ns, self.frame_id, delivery.position_m, variance))
+                delivery.stamp_ns, options.frame_id, delivery.position_m, variance))
         self.truth_pub.publish(messages.to_odometry_msg(
-            truth_stamp_ns, self.frame_id, self.child_frame_id, sample.true_position_m,
+            truth_stamp_ns, options.frame_id, options.child_frame_id, sample.true_position_m,
             sample.true_velocity_mps, 0.0, 0.0))
         self._finish_if_done()
 

@@ -18,8 +18,8 @@ from ros_helpers import isolated_env
 
 BENCH_TIMEOUT_S = 600.0
 # The benchmark is not part of the installed package: load it from the source tree.
-BENCH = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                     'benchmarks', 'bench.py')
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+BENCH = os.path.join(REPO, 'benchmarks', 'bench.py')
 _spec = importlib.util.spec_from_file_location('bench', BENCH)
 bench = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench)

@@ -1,0 +1,157 @@
+"""
+The estimator node's ``/diagnostics`` status, built from plain data.
+
+Pure (no rclpy, no message package): :func:`filter_status` reads the streaming estimator
+and the node's counters and returns the level, the message and the key/value pairs;
+:func:`kf_train.ros.messages.to_diagnostics_msg` makes the message of them. The values
+are strings, formatted as the status has always shown them.
+"""
+
+import functools
+import math
+from typing import List, NamedTuple, Optional, Sequence, Tuple
+
+from kf_train.filters.chi2 import chi2_mean_bounds
+import numpy as np
+
+CONSISTENCY_CONFIDENCE = 0.99
+"""Two-sided confidence of the bounds on the mean NIS."""
+MAX_CONDITION = 1e12
+"""Condition number of P above which the status warns: beyond ~1e12 a double keeps only a
+few significant digits of the smaller eigen-direction."""
+
+
+class NodeCounts(NamedTuple):
+    """What the node counted itself (the estimator counts the rest)."""
+
+    received: int
+    fused: int
+    rejected: int
+    set_state_refused: int
+    controls_received: int
+    controls_rejected: int
+
+
+class Activity(NamedTuple):
+    """The input's pace since the last status."""
+
+    input_rate_hz: float
+    fused_rate_hz: float
+    age_s: float
+    """Time since the last fused measurement (since the start if none was fused)."""
+    ever_fused: bool
+
+
+class FilterStatus(NamedTuple):
+    """One diagnostic status: level, message, values."""
+
+    level: str
+    """'OK' or 'WARN'."""
+    message: str
+    values: List[Tuple[str, str]]
+    timeout_warning: Optional[str]
+    """The timeout text when no measurement was fused for timeout_s, else None."""
+
+
+@functools.lru_cache(maxsize=1024)
+def nis_bounds(count: int, dim_z: int) -> Tuple[float, float]:
+    """Return the CONSISTENCY_CONFIDENCE bounds of the mean of count NIS values (dim_z each)."""
+    return chi2_mean_bounds(count, dim_z, CONSISTENCY_CONFIDENCE)
+
+
+def filter_status(estimator, counts: NodeCounts, activity: Activity, timeout_s: float,
+                  nis: Sequence[float]) -> FilterStatus:
+    """
+    Return the status of ``estimator`` (a streaming estimator) and the node around it.
+
+    WARN, with every reason joined by '; ', when no measurement was fused for
+    ``timeout_s``, when the mean of the ``nis`` window leaves its 99% bounds (noise
+    parameters too small or too large), or when the covariance is ill-conditioned.
+    """
+    warnings = []
+    timeout_warning = None
+    if activity.age_s > timeout_s:
+        what = 'no measurement fused' if activity.ever_fused else 'no measurement fused yet'
+        timeout_warning = f'{what} for {activity.age_s:.1f} s (timeout_s {timeout_s:g})'
+        warnings.append(timeout_warning)
+    values = [
+        ('preset', estimator.preset.name),
+        ('filter', estimator.settings.filter),
+        ('initialized', str(estimator.initialized).lower()),
+        ('input_rate_hz', f'{activity.input_rate_hz:.3f}'),
+        ('fused_rate_hz', f'{activity.fused_rate_hz:.3f}'),
+        ('last_measurement_age_s', f'{activity.age_s:.3f}' if activity.ever_fused
+         else 'never'),
+    ]
+    values += _count_values(estimator, counts)
+    values += _filter_values(estimator)
+    nis_values, nis_warning = _nis_values(nis, estimator.model.dim_z)
+    values += nis_values
+    warnings += [nis_warning] if nis_warning else []
+    state = estimator.state
+    if state is not None:
+        condition = float(np.linalg.cond(state[1]))
+        values.append(('covariance_condition', f'{condition:.6g}'))
+        if not condition <= MAX_CONDITION:
+            warnings.append(f'ill-conditioned covariance (condition {condition:.3g})')
+    if warnings:
+        return FilterStatus('WARN', '; '.join(warnings), values, timeout_warning)
+    message = 'ok' if estimator.initialized else 'waiting for measurements'
+    return FilterStatus('OK', message, values, timeout_warning)
+
+
+def _count_values(estimator, counts: NodeCounts) -> List[Tuple[str, str]]:
+    """Return the counts: received, fused, rejections, resets, controls."""
+    values = [('received', str(counts.received)), ('fused', str(counts.fused)),
+              ('fused_out_of_sequence', str(estimator.out_of_sequence_count)),
+              ('rejected', str(counts.rejected))]
+    values += [(f'rejected.{reason}', str(count))
+               for reason, count in estimator.rejection_counts.items()]
+    resets = estimator.reset_counts
+    values.append(('resets', str(sum(resets.values()))))
+    values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
+    values.append(('set_state_refused', str(counts.set_state_refused)))
+    if estimator.has_control:
+        values.append(('controls_received', str(counts.controls_received)))
+        values += [(f'controls.{key}', str(count))
+                   for key, count in estimator.control_counts.items()]
+        values.append(('controls_rejected', str(counts.controls_rejected)))
+        values += [(f'controls_rejected.{reason}', str(count))
+                   for reason, count in estimator.control_rejection_counts.items()]
+    return values
+
+
+def _filter_values(estimator) -> List[Tuple[str, str]]:
+    """Return the filter's own figures (UKF regularisations, particle ESS) and the gate."""
+    values = []
+    model = estimator.model
+    regularisations = getattr(model, 'regularisations', None)
+    if regularisations is not None:
+        values.append(('ukf_regularisations', str(regularisations)))
+    if estimator.settings.filter == 'pf' and estimator.initialized:
+        # The particles last stepped: those of the newest estimate.
+        values += [('pf_ess', f'{model.filter.ess:.1f}'),
+                   ('pf_resample_count', str(model.filter.resample_count))]
+    values += [('gate_probability', f'{estimator.settings.gate_probability:g}'),
+               ('gate_threshold', f'{estimator.gate_threshold:.6g}')]
+    return values
+
+
+def _nis_values(nis: Sequence[float],
+                dim_z: int) -> Tuple[List[Tuple[str, str]], Optional[str]]:
+    """Return the NIS window's values and, if its mean is out of bounds, the warning."""
+    count = len(nis)
+    values = [('nis_window_count', str(count))]
+    if not count:
+        return values, None
+    mean = math.fsum(nis) / count
+    lower, upper = nis_bounds(count, dim_z)
+    values += [('nis_window_mean', f'{mean:.6g}'), ('nis_lower_99', f'{lower:.6g}'),
+               ('nis_upper_99', f'{upper:.6g}')]
+    if mean > upper:
+        return values, (f'inconsistent: noise parameters too small (mean NIS {mean:.3g} > '
+                        f'{upper:.3g} over {count} updates)')
+    if mean < lower:
+        return values, (f'inconsistent: noise parameters too large (mean NIS {mean:.3g} < '
+                        f'{lower:.3g} over {count} updates)')
+    return values, None

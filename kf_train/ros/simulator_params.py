@@ -1,0 +1,171 @@
+"""
+The ``simulator`` node's parameters, each declared once, and the simulation they make.
+
+Pure (no rclpy, no message package), like :mod:`kf_train.ros.estimator_params`:
+:data:`PARAMETERS` is the one table the node declares and the docs are generated from;
+:func:`simulator_config` checks values as the node does.
+"""
+
+from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
+
+from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
+from kf_train.sim.faults import FaultSettings
+from kf_train.sim.scenario_streams import (
+    CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, ROBOT_SPEED_STD_MPS,
+    SCENARIOS)
+
+FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
+FAULT_PARAMETERS = {
+    'dropout_probability': 'dropout_probability',
+    'outlier_probability': 'outlier_probability',
+    'outlier_size_m': 'outlier_size_m',
+    'delay_s': 'delay_s',
+    'reorder_probability': 'reorder_probability',
+    'clock_jump_at_s': 'clock_jump_at_s',
+    'clock_jump_s': 'clock_jump_s',
+    'measurement_bias_m': 'bias_m',
+}
+"""Fault parameter -> FaultSettings field."""
+
+_FIXED = 'Fixed at start-up (restart to change).'
+_SCENARIOS = "Default: the scenario's. "
+_FAULT = ' Changeable at runtime; applies from the next sample. Default off.'
+_PROBABILITY = (0.0, 1.0)
+_FRAME = 'a non-empty frame name'
+_G_FIXED = 'fixed at start-up (restart to change)'
+_G_LIVE = 'changeable at runtime'
+_G_FAULTS = 'fault injection: all off by default, applied from the next sample'
+
+
+def _double(name, default, description, range_, unit='', **more) -> ParamSpec:
+    """Return the spec of a double parameter."""
+    return ParamSpec(name, 'double', default, description, range=range_, unit=unit, **more)
+
+
+def _fault(name, default, description, range_, unit='') -> ParamSpec:
+    """Return the spec of a fault-injection parameter (a double, live)."""
+    return _double(name, default, description + _FAULT, range_, unit, group=_G_FAULTS)
+
+
+PARAMETERS = ParamTable('simulator', key='scenario', specs=(
+    ParamSpec('scenario', 'string', 'train',
+              'What is simulated: train (seed 000), car / car-exact (seed 001, publishes '
+              'control as AccelStamped), robot / robot-exact (seed 002, publishes control as '
+              'TwistStamped). ' + _FIXED, choices=SCENARIOS, live=False, group=_G_FIXED),
+    _double('rate_hz', 10.0, 'Sample rate [Hz]. ' + _FIXED, (0.01, 10000.0), 'Hz',
+            live=False, group=_G_FIXED),
+    _double('true_velocity', None,
+            "True velocity [m/s]: the train's constant one, the car's initial one (robot: "
+            'not used). ' + _SCENARIOS + _FIXED, (-1000.0, 1000.0), 'm/s', live=False,
+            group=_G_FIXED, derived=True),
+    _double('initial_position', None,
+            "True position at the start time [m] (robot: added to the seed's trajectory). "
+            + _SCENARIOS + _FIXED, (-BIG, BIG), 'm', live=False, group=_G_FIXED,
+            derived=True),
+    _double('acceleration_mps2', CAR_ACCELERATION_MPS2,
+            'car: the commanded acceleration [m/s²], published on control. ' + _FIXED,
+            (-1000.0, 1000.0), 'm/s²', live=False, group=_G_FIXED),
+    ParamSpec('seed', 'integer', 0,
+              'Seed of the measurement noise and of the faults; -1 draws fresh entropy. '
+              + _FIXED, range=(-1, 2 ** 31 - 1), live=False, group=_G_FIXED),
+    _double('noise_std', None,
+            'Standard deviation of the position measurement noise [m]; its square is '
+            'published as the measurement variance. ' + _SCENARIOS, (0.0, 1000.0), 'm',
+            group=_G_LIVE, derived=True),
+    _double('speed_noise_std', ROBOT_SPEED_STD_MPS,
+            'robot: standard deviation of the speed sensor [m/s] whose readings are '
+            'published on control.', (0.0, 1000.0), 'm/s', group=_G_LIVE),
+    ParamSpec('frame_id', 'string', 'odom',
+              'Frame of the measurements and the truth (REP 105).', constraints=_FRAME,
+              group=_G_LIVE),
+    ParamSpec('child_frame_id', 'string', 'base_link',
+              'child_frame_id of the ground truth odometry.', constraints=_FRAME,
+              group=_G_LIVE),
+    ParamSpec('max_samples', 'integer', 0,
+              'Samples to publish before finishing; 0 runs forever.', range=(0, 2 ** 31 - 1),
+              group=_G_LIVE),
+    ParamSpec('min_subscribers', 'integer', 0,
+              'Subscribers of measurement (and of control, for car and robot) to wait for '
+              'before the first sample.', range=(0, 1000), group=_G_LIVE),
+    ParamSpec('publish_clock', 'bool', False,
+              'Publish each sample stamp on /clock (for nodes with use_sim_time).',
+              group=_G_LIVE),
+    _fault('dropout_probability', 0.0, 'Probability that a sample is lost.', _PROBABILITY),
+    _fault('outlier_probability', 0.0, 'Probability that a sample is off by ±outlier_size_m.',
+           _PROBABILITY),
+    _fault('outlier_size_m', 10.0, 'Size of an outlier [m], added with a random sign.',
+           (0.0, 1e6), 'm'),
+    _fault('delay_s', 0.0, 'Latency between taking and publishing a sample [s].',
+           (0.0, 60.0), 's'),
+    _fault('reorder_probability', 0.0,
+           'Probability that a sample is published after the next one.', _PROBABILITY),
+    _fault('clock_jump_at_s', 0.0,
+           'Sample time [s] from which clock_jump_s is added to every stamp; 0 = never.',
+           (0.0, 1e9), 's'),
+    _fault('clock_jump_s', 0.0,
+           'Stamp jump [s] from clock_jump_at_s on; negative jumps back (a restarted sensor '
+           'clock).', (-1e9, 1e9), 's'),
+    _fault('measurement_bias_m', 0.0, 'Constant bias added to every measurement [m].',
+           (-1e6, 1e6), 'm'),
+), derived_defaults=lambda scenario: {
+    'initial_position': DEFAULT_INITIAL_STATE[scenario][0],
+    'true_velocity': DEFAULT_INITIAL_STATE[scenario][1],
+    'noise_std': DEFAULT_NOISE_STD_M[scenario]})
+"""Every parameter of the simulator node, in declaration order."""
+
+
+class SimulatorOptions(NamedTuple):
+    """The parameters that configure the node's publishing, changeable at runtime."""
+
+    frame_id: str
+    child_frame_id: str
+    max_samples: int
+    min_subscribers: int
+    publish_clock: bool
+
+
+class SimulatorConfig(NamedTuple):
+    """What the simulator node runs."""
+
+    scenario: str
+    rate_hz: float
+    seed: int
+    """-1: fresh entropy."""
+    stream: Dict[str, float]
+    """The keyword arguments of kf_train.sim.scenario_streams.make_stream."""
+    faults: FaultSettings
+    options: SimulatorOptions
+    values: Dict[str, Any]
+    """Every parameter's value, as ``ros2 param get`` shows it."""
+
+
+def simulator_config(values: Mapping[str, Any]) -> SimulatorConfig:
+    """Return the simulator's configuration from parameter values, checked as the node does."""
+    values = PARAMETERS.complete(values)
+    for name in FRAME_PARAMETERS:
+        if not values[name]:
+            raise ParameterError(f'{name} must not be empty')
+    try:
+        faults = FaultSettings(**{field: values[name] for name, field
+                                  in FAULT_PARAMETERS.items()}).validated()
+    except ValueError as error:
+        raise ParameterError(str(error)) from None
+    stream = {'noise_std_m': values['noise_std'],
+              'initial_position_m': values['initial_position'],
+              'velocity_mps': values['true_velocity'],
+              'acceleration_mps2': values['acceleration_mps2'],
+              'speed_noise_std_mps': values['speed_noise_std']}
+    options = SimulatorOptions(**{name: values[name] for name in SimulatorOptions._fields})
+    return SimulatorConfig(values['scenario'], values['rate_hz'], values['seed'], stream,
+                           faults, options, values)
+
+
+def changed_config(config: SimulatorConfig, changes: Mapping[str, Any]) -> SimulatorConfig:
+    """Return the configuration after a runtime change, or raise ParameterError (a reason)."""
+    return simulator_config(PARAMETERS.changed(config.values, changes))
+
+
+def load_simulator_config(params_files: Union[Mapping, Sequence[Mapping]] = (),
+                          overrides: Iterable[str] = ()) -> SimulatorConfig:
+    """Return the configuration the node would run with these params files and overrides."""
+    return simulator_config(PARAMETERS.load(params_files, overrides))
