@@ -1,6 +1,12 @@
 """
 ``kf-train replay``: run a preset's filter over a CSV of measurements, offline.
 
+The command streams (:mod:`kf_train.cli.replay_stream`: any size in bounded memory,
+CSV or Parquet) unless ``--engine memory`` asks for :func:`replay` below, which holds
+the whole table; ``--engine dask`` runs a fleet on Dask
+(:mod:`kf_train.cli.fleet_dask`). This module keeps the CSV reading, checking and
+column layout both share.
+
 Input CSV: a header row, then one row per measurement. Columns (any order; other
 columns are ignored):
 
@@ -499,8 +505,8 @@ def _parser() -> argparse.ArgumentParser:
     """Return the argument parser."""
     parser = argparse.ArgumentParser(
         prog='kf-train replay',
-        description='Run a preset filter over a CSV of measurements and write the '
-                    'estimates to a CSV.',
+        description='Run a preset filter over measurements (CSV or Parquet, any size: '
+                    'streamed in blocks) and write the estimates (CSV or Parquet).',
         epilog='Input: a header, then rows with t [s], the measurements z_position, '
                'z_velocity, z_bearing [rad], z_range [m] the preset uses, and u when it '
                'has a control input (the control over the interval ending at the row); '

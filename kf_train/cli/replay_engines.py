@@ -11,6 +11,7 @@ How ``kf-train replay`` runs: streamed in bounded memory, all in memory, or on D
 """
 
 import argparse
+import os
 
 from kf_train.batch.chunked import DEFAULT_BLOCK_ROWS
 
@@ -48,6 +49,11 @@ def check_engine_options(parser: argparse.ArgumentParser, args) -> None:
         parser.error(f'--workers must be >= 1, got {args.workers}')
     if args.scheduler is not None and args.engine != 'dask':
         parser.error('--scheduler needs --engine dask')
+    if args.engine == 'memory' and any(
+            path != '-' and (path.endswith('.parquet') or os.path.isdir(path)
+                             or path.endswith(os.sep)) for path in (args.input, args.output)):
+        parser.error('--engine memory reads and writes CSV only; Parquet streams '
+                     '(--engine stream)')
 
 
 def run_engine(args, preset, filt):
