@@ -169,32 +169,27 @@ def repr_strings(values: np.ndarray, name: str = ''):
     Return the doubles as a polars Series: Float64 if polars writes them as repr(), else text.
 
     polars' shortest round-trip digits are repr's, but its layout differs in one band:
-    for 1e-9 <= |v| < 1e-4 it writes 0.0000123 where repr writes 1.23e-05 (decimal
-    exponent −5) and 1.5e-7 where repr pads the exponent (1.5e-07). Those values are
-    rewritten from polars' own digits (string slicing, no regex); non-finite values,
-    rare, are written by repr itself.
+    for 1e-9 <= |v| < 1e-4 it writes 0.0000123 where repr writes 1.23e-05, and 1.5e-7
+    where repr pads the exponent (1.5e-07). In scientific notation polars writes every
+    value of that band as repr does but for the padding of its one-digit exponent, so
+    those values are written that way and padded; non-finite values, rare, by repr.
     """
     pl = _pl()
     values = np.asarray(values, dtype=np.float64)
     size = np.abs(values)
     odd = (size >= _REPR_LOW) & (size < _REPR_HIGH)
     finite = np.isfinite(values)
-    series = pl.Series(name, values)
     if not odd.any() and finite.all():
-        return series
-    text = series.cast(pl.String)
-    band5 = np.flatnonzero(odd & (size >= 1e-5))   # polars: '0.0000' + digits
-    if band5.size:
-        digits = pl.Series(np.abs(values[band5])).cast(pl.String).str.slice(6)
-        head, tail = digits.str.slice(0, 1), digits.str.slice(1)
-        fixed = pl.DataFrame({'h': head, 't': tail, 'neg': values[band5] < 0}).select(
-            pl.when(pl.col('neg')).then(pl.lit('-')).otherwise(pl.lit('')) + pl.col('h')
-            + pl.when(pl.col('t') == '').then(pl.lit('')).otherwise(pl.lit('.') + pl.col('t'))
-            + pl.lit('e-05')).to_series()
-        text = text.scatter(band5, fixed)
-    small = np.flatnonzero(odd & (size < 1e-5))    # polars: 'd.de-7', repr: 'd.de-07'
-    if small.size:
-        text = text.scatter(small, text.gather(small).str.replace('e-', 'e-0', literal=True))
+        return pl.Series(name, values)
+    band = np.flatnonzero(odd)
+    blob = pl.DataFrame({name: values[band]}).write_csv(
+        include_header=False, float_scientific=True).replace('e-', 'e-0')
+    fixed = pl.Series(name, [blob]).str.split('\n').explode().head(band.size)
+    if band.size == values.size:
+        return fixed
+    text = pl.Series(name, values).cast(pl.String)
+    if band.size:
+        text = text.scatter(band, fixed)
     bad = np.flatnonzero(~finite)
     if bad.size:
         text = text.scatter(bad, [repr(v) for v in values[bad].tolist()])

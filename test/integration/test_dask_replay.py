@@ -73,3 +73,15 @@ def test_dask_needs_an_id_column(tmp_path, capsys):
     err = capsys.readouterr().err
     assert 'the dask engine needs the columns id, t, z_position' in err, err
     assert err.count('\n') == 1
+
+
+def test_nodes_import_no_columnar_or_dask_library():
+    """The nodes never import polars, pyarrow, pandas or Dask (start-up and footprint)."""
+    import subprocess
+    import sys
+    code = ('import sys, kf_train.ros.estimator_node, kf_train.ros.simulator_node\n'
+            'print(sorted({m.split(".")[0] for m in sys.modules} & {"polars", "pyarrow", '
+            '"pandas", "dask", "distributed"}))')
+    result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                            timeout=120, check=True)
+    assert result.stdout.strip() == '[]'
