@@ -30,10 +30,10 @@ smoothed row of the next block. Memory stays bounded; disk grows with the rows.
 
 from typing import List, NamedTuple, Optional, Sequence, Tuple
 
-from kf_train.batch.series import (
-    _bank_horizon, _lockstep_linear, group_rows, LOCKSTEP_STEP_S, MAX_ABS_TIME_S,
-    NS_PER_S, run_linear_series, run_series, SERIES_CALL_S, SeriesError)
-from kf_train.filters.validation import as_covariance, as_finite_array, as_vector
+from kf_train.batch.bank import _run_together, _split_objects, group_rows
+from kf_train.batch.linear import run_linear_series
+from kf_train.batch.series import MAX_ABS_TIME_S, run_series, SeriesError
+from kf_train.filters import as_covariance, as_finite_array, as_vector, NS_PER_S
 import numpy as np
 
 # Rows filtered together: big enough for the vectorised paths to run at full speed,
@@ -314,26 +314,30 @@ class BlockFilter:
         N, n = t.shape[0], self.preset.dim_x
         objects, local = np.unique(codes, return_inverse=True)
         groups = group_rows(local.reshape(-1))
-        out = tuple(np.empty(shape) for shape in ((N, n), (N, n, n), (N, n), (N, n, n)))
-        pred_x = np.empty((N, n)) if self.horizon else None
-        pred_P = np.empty((N, n, n)) if self.horizon else None
+        out = (np.empty((N, n)), np.empty((N, n, n)), np.empty((N, n)), np.empty((N, n, n)),
+               np.empty((N, n)) if self.horizon else None,
+               np.empty((N, n, n)) if self.horizon else None)
         alone = np.arange(objects.shape[0])
         if self.filt is None and self.preset.linear:
-            alone = self._lockstep(objects, groups, dt, z, u, out, pred_x, pred_P)
+            alone, together = _split_objects(groups)      # the bank's own cost model
+            if together.size:
+                starts = [self.states.start(int(objects[k])) for k in together]
+                x0 = np.stack([start[1] for start in starts], axis=1)
+                P0 = np.stack([start[2] for start in starts], axis=2)
+                dts, inv = np.unique(dt, return_inverse=True)
+                _run_together(self.preset, dt, z, u, groups, together, x0, P0,
+                              (dts, inv.reshape(-1)), self.horizon, out)
         for k in alone:
             rows = groups.rows(k)
-            obj = int(objects[k])
             try:
-                est = self._object_rows(obj, t[rows], dt[rows], z[rows],
+                est = self._object_rows(int(objects[k]), t[rows], dt[rows], z[rows],
                                         None if u is None else u[rows])
             except SeriesError as error:
                 raise SeriesError(int(rows[error.row]), error.reason) from None
-            for array, value in zip(out, est[1:5]):
-                array[rows] = value
-            if self.horizon:
-                pred_x[rows], pred_P[rows] = est.predicted_x, est.predicted_P
-        F = self.preset.dynamics.F_batch(dt)
-        return Estimates(t, *out, F, pred_x, pred_P)
+            for array, value in zip(out, est[1:5] + est[6:]):
+                if array is not None:
+                    array[rows] = value
+        return Estimates(t, *out[:4], self.preset.dynamics.F_batch(dt), *out[4:])
 
     def _object_rows(self, obj: int, t, dt, z, u) -> Estimates:
         """Filter one object's rows of a block alone."""
@@ -343,31 +347,3 @@ class BlockFilter:
         runner = run_linear_series if self.preset.linear else run_series
         return _as_estimates(runner(self.preset, t, z, u, t0_s=t0,
                                     horizon_s=self.horizon or 0.0, x0=x0, P0=P0))
-
-    def _lockstep(self, objects, groups, dt, z, u, out, pred_x, pred_P) -> np.ndarray:
-        """Run the objects with few rows in lock-step; return the ones to run alone."""
-        K = objects.shape[0]
-        by_rows = np.argsort(-groups.counts, kind='stable')
-        counts = np.concatenate([groups.counts[by_rows], [0]])
-        cost = np.arange(K + 1) * SERIES_CALL_S + counts * LOCKSTEP_STEP_S
-        split = int(np.argmin(cost))
-        alone, together = by_rows[:split], by_rows[split:]
-        if not together.size:
-            return alone
-        states = self.states
-        x0 = np.stack([states.start(int(objects[k]))[1] for k in together], axis=1)
-        P0 = np.stack([states.start(int(objects[k]))[2] for k in together], axis=2)
-        dts, inv = np.unique(dt, return_inverse=True)
-        rows = _lockstep_linear(self.preset, dt, z, u, groups, together, x0, P0, out,
-                                (dts, inv.reshape(-1)))
-        # The lock-step results were written step-major: put them in row order.
-        for array in out:
-            array[rows] = array[:rows.shape[0]].copy()
-        out_x, out_P = out[0], out[1]
-        bad = rows[~(np.all(np.isfinite(out_x[rows]), axis=1)
-                     & np.all(np.isfinite(out_P[rows]), axis=(1, 2)))]
-        if bad.size:
-            raise SeriesError(int(bad.min()), 'the filter diverged (non-finite estimate)')
-        if self.horizon:
-            _bank_horizon(self.preset, rows, u, self.horizon, out_x, out_P, pred_x, pred_P)
-        return alone

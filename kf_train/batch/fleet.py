@@ -1,10 +1,10 @@
 """
 A fleet: N independent 2-state train filters stepped at once, as numpy arrays.
 
-Every filter is the train model of :mod:`kf_train.filters.fast` (F(dt) = [[1, dt],
-[0, 1]], H = [1, 0], Q(dt) from one shared noise model, its own R); filter i of the
-fleet gives bit for bit what a :class:`~kf_train.filters.fast.FastTrainFilter` fed the
-same numbers would, and so the generic kalman.py path to rounding.
+Every filter is the train model of :mod:`kf_train.filters.closed_form` (F(dt) =
+[[1, dt], [0, 1]], H = [1, 0], Q(dt) from one shared noise model, its own R); filter i
+of the fleet gives bit for bit what a :class:`~kf_train.filters.FastTrainFilter` fed
+the same numbers would, and so the generic kalman.py path to rounding.
 
 The state is kept as five component arrays (position, velocity, P00, P01, P11) of
 length N rather than (N, 2) and (N, 2, 2): each equation is then one numpy call
@@ -18,9 +18,9 @@ concerned, and leaves every filter as it was.
 import math
 from typing import NamedTuple, Tuple
 
-from kf_train.filters.fast import noise_terms_function, NoiseModel, per_step_noise_terms
-from kf_train.filters.models import PerStepNoise, WhiteNoiseAcceleration
-from kf_train.filters.validation import COVARIANCE_RTOL
+from kf_train.filters import (
+    COVARIANCE_RTOL, noise_terms_function, NoiseModel, per_step_noise_terms, per_step_periods,
+    per_step_weights, PerStepNoise, white_noise_terms_into, WhiteNoiseAcceleration)
 import numpy as np
 
 DEFAULT_CHUNK_SIZE = 32768
@@ -362,22 +362,8 @@ def _prior_finite(inputs, dt: np.ndarray, i: int) -> bool:
 
 
 def _white_noise_chunk(q: float):
-    """Return fn(dt, scratch) -> (Q00, Q01, Q11) of q·[[dt³/3, dt²/2], [dt²/2, dt]]."""
-    half_q = 0.5 * q
-
-    def terms(dt: np.ndarray, scratch) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        q00, q01, q11 = (a[:dt.shape[0]] for a in scratch)
-        # dt² is correctly rounded here (CPython's dt ** 2 in models.py is not
-        # always), and dt³ = dt²·dt rounds twice where pow rounds once: the entries
-        # may differ from models.py's by an ulp or two.
-        np.multiply(dt, dt, out=q01)
-        np.multiply(q01, dt, out=q00)
-        np.divide(q00, 3.0, out=q00)
-        np.multiply(q00, q, out=q00)        # Q00 = q·(dt³/3)
-        np.multiply(q01, half_q, out=q01)   # Q01 = q·(dt²/2), halving being exact
-        np.multiply(dt, q, out=q11)         # Q11 = q·dt
-        return q00, q01, q11
-    return terms
+    """Return fn(dt, scratch) -> (Q00, Q01, Q11): models.white_noise_terms_into for q."""
+    return lambda dt, scratch: white_noise_terms_into(q, dt, scratch)
 
 
 def _per_step_noise_arrays(noise: PerStepNoise, dt: np.ndarray) -> Tuple:
@@ -385,18 +371,11 @@ def _per_step_noise_arrays(noise: PerStepNoise, dt: np.ndarray) -> Tuple:
     a, c, b = (float(noise.Q_step[0, 0]), float(noise.Q_step[0, 1]),
                float(noise.Q_step[1, 1]))
     T = float(noise.period_s)
-    n = np.floor(dt / T)
-    r = dt - n * T
-    low = r < 0.0  # rounding when dt is a whole number of periods
-    n = np.where(low, n - 1.0, n)
-    r = np.where(low, r + T, r)
-    if float(np.max(n, initial=0.0)) >= 2.0 ** 17:
+    if float(np.max(per_step_periods(dt, T)[0], initial=0.0)) >= 2.0 ** 17:
         # (n-1)·n·(2n-1) would no longer be exact in a double: go one by one.
         terms = np.array([per_step_noise_terms(a, c, b, T, float(v)) for v in dt])
         return terms[:, 0], terms[:, 1], terms[:, 2]
-    s0 = n + r / T
-    s1 = n * r + T * n * (n - 1.0) / 2.0
-    s2 = n * r ** 2 + r * T * n * (n - 1.0) + T ** 2 * (n - 1.0) * n * (2.0 * n - 1.0) / 6.0
+    s0, s1, s2 = per_step_weights(dt, T)
     return a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1, b * s0
 
 
@@ -423,8 +402,9 @@ def _kernel(prior, z, dt, R, q, out, scratch, predict: bool, update: bool) -> No
     """
     Step one chunk: ``prior`` (x0, x1, P00, P01, P11) into ``out`` (the same and y, S, NIS).
 
-    The arithmetic of FastTrainFilter.step, operation for operation, so that every
-    filter's result is the scalar path's bit for bit.
+    The arithmetic of :mod:`kf_train.filters.closed_form` (and FastTrainFilter.step),
+    operation for operation, so that every filter's result is the scalar path's bit for
+    bit; in place, chunk by chunk, because temporaries would leave the cache.
     """
     x0, x1, p00, p01, p11 = prior
     X0, X1, P00, P01, P11, Y, S, NIS = out

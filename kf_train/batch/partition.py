@@ -27,7 +27,7 @@ from typing import List, Optional, Union
 
 from kf_train.batch.chunked import output_header, resolve_horizon, RowError
 from kf_train.batch.stream import filter_table
-from kf_train.presets.loader import load_preset, Preset
+from kf_train.presets import load_preset, Preset
 import numpy as np
 
 ID_COLUMN = 'id'

@@ -18,8 +18,9 @@ covariance); larger states run row by row.
 
 from typing import NamedTuple
 
-from kf_train.batch.series import affine_recursion, SeriesResult
-from kf_train.filters.validation import as_finite_array
+from kf_train.batch.affine import affine_recursion
+from kf_train.batch.series import SeriesResult
+from kf_train.filters import as_finite_array
 import numpy as np
 
 # vec(Ps) has n² entries; the vectorised covariance pass costs O(n⁶) per row.

@@ -30,13 +30,11 @@ import sys
 import time
 from typing import Dict, List, NamedTuple, Optional, Sequence, Tuple
 
-from kf_train.batch.series import run_filter_series, SeriesError
-from kf_train.filters.chi2 import chi2_quantile
-from kf_train.filters.family import (
-    add_filter_options, check_kind, filter_options, FilterOptions, make_filter)
-from kf_train.filters.particle import psd_factor
-from kf_train.presets.loader import available_presets, load_preset, Preset
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.batch import run_filter_series, SeriesError
+from kf_train.cli.filter_options import add_filter_options, filter_options
+from kf_train.filters import check_kind, chi2_quantile, FilterOptions, make_filter, psd_factor
+from kf_train.presets import available_presets, load_preset, Preset
+from kf_train.sim import scenario_for_preset
 import numpy as np
 
 EXIT_OK = 0

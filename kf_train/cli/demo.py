@@ -9,7 +9,7 @@ run's own, records every message with a probe node, and then checks and reports:
 * the position predicted for t = 12 s (2 s past the last sample) against the true
   120 m, next to seed 000's two baselines (the Kalman position at the last sample
   plus 2 s times the running-average or the raw-difference velocity);
-* that the numbers that crossed DDS equal the offline core's (:class:`TrainEstimator`
+* that the numbers that crossed DDS equal the offline core's (:class:`StreamEstimator`
   fed the same stamps and measurements).
 
 It writes ``report.txt``, ``series.csv`` and the nodes' logs to ``--output-dir``.
@@ -29,21 +29,10 @@ import sys
 import time
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
-from kf_train.ros import messages
-from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
-from kf_train.sim.simulation import TrainSimulation
-from nav_msgs.msg import Odometry
+from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
+from kf_train.ros import demo_nodes, messages
+from kf_train.sim import extrapolate, raw_difference_velocity, running_average, TrainSimulation
 import numpy as np
-import rclpy
-from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
-from rclpy.node import Node
-from rclpy.parameter import Parameter, parameter_value_to_python
-from rclpy.parameter_client import AsyncParameterClient
-from rclpy.qos import QoSProfile
-from rclpy.signals import SignalHandlerOptions
 
 # Seed 000's scenario; the simulator's and the estimator's defaults give the rest
 # (x0 = 0, v = 10 m/s, σ = 1 m; prior [0, 5] with P0 = I, Q = 0, horizon 2 s).
@@ -59,21 +48,14 @@ HOLD_SUBSCRIBERS = 1000
 DISCOVERY_TIMEOUT_S = 20.0
 EXIT_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 5.0
-PROBE_DEPTH = 1000
-"""Keep-last depth of the probe's subscriptions: never the bottleneck."""
+
+TOPICS = demo_nodes.TOPICS
+"""The topics the probe records, with their message types."""
 
 EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
-
-TOPICS = {
-    'measurement': PoseWithCovarianceStamped,
-    'ground_truth': Odometry,
-    'estimate': Odometry,
-    'prediction': Odometry,
-}
-"""The topics the probe records, with their message types."""
 
 
 class _Child(NamedTuple):
@@ -89,48 +71,6 @@ class DemoError(Exception):
 
 class _Terminated(Exception):
     """SIGTERM reached the demo."""
-
-
-class Probe(Node):
-    """Records every message on the simulator's and the estimator's topics."""
-
-    def __init__(self, *, context: Optional[Context] = None,
-                 node_name: str = 'kf_train_probe', namespace: str = '',
-                 depth: int = PROBE_DEPTH, subscribe_measurement: bool = True):
-        """
-        Subscribe to ground_truth, estimate, prediction and, unless told not to, measurement.
-
-        The topics are relative: in ``namespace`` they are the nodes' of that namespace.
-        Subscribing to ``measurement`` late (:meth:`subscribe_measurement`) lets a
-        simulator with ``min_subscribers`` wait until the probe listens everywhere.
-        """
-        super().__init__(node_name, context=context, namespace=namespace)
-        self.qos = QoSProfile(depth=depth)
-        self.received: Dict[str, List] = {topic: [] for topic in TOPICS}
-        self._topic_subscriptions = {}
-        for topic in ('ground_truth', 'estimate', 'prediction'):
-            self._subscribe(topic)
-        if subscribe_measurement:
-            self.subscribe_measurement()
-
-    def _subscribe(self, topic: str) -> None:
-        """Record ``topic`` into ``self.received[topic]``."""
-        self._topic_subscriptions[topic] = self.create_subscription(
-            TOPICS[topic], topic, self.received[topic].append, self.qos)
-
-    def subscribe_measurement(self) -> None:
-        """Start recording ``measurement`` (idempotent)."""
-        if 'measurement' not in self._topic_subscriptions:
-            self._subscribe('measurement')
-
-    def counts(self) -> Dict[str, int]:
-        """Return how many messages each topic has delivered so far."""
-        return {topic: len(msgs) for topic, msgs in self.received.items()}
-
-    def sees_nodes(self) -> bool:
-        """Return whether the graph shows both nodes' publishers and the estimator's input."""
-        return (all(self.count_publishers(topic) >= 1 for topic in TOPICS)
-                and self.count_subscribers('measurement') >= 1)
 
 
 class DemoSeries(NamedTuple):
@@ -196,7 +136,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except DemoError as error:
         print(f'kf-train demo: error: {error}', file=sys.stderr)
         return EXIT_FAILED
-    except (KeyboardInterrupt, ExternalShutdownException, _Terminated):
+    except (KeyboardInterrupt, demo_nodes.ExternalShutdownException, _Terminated):
         print('kf-train demo: interrupted; nodes stopped', file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
@@ -218,27 +158,15 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
     _progress(f'ROS_DOMAIN_ID={domain_id}: seed 000, {SAMPLES} samples at {RATE_HZ:g} Hz, '
               f'noise seed {seed}; node logs in {output_dir}')
     children: Dict[str, _Child] = {}
-    context = Context()
+    context = demo_nodes.Context()
     saved_range = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
     try:
-        # The estimator first: its subscription exists before the simulator looks.
-        children['estimator'] = _start('estimator', [
-            '-p', 'initialization:=prior', '-p', f'horizon_s:={HORIZON_S!r}'],
-            env, output_dir)
-        children['simulator'] = _start('simulator', [
-            '-p', f'seed:={seed}', '-p', f'rate_hz:={RATE_HZ!r}',
-            '-p', f'max_samples:={SAMPLES}',
-            # Hold the first sample until told how many subscribers to wait for.
-            '-p', f'min_subscribers:={HOLD_SUBSCRIBERS}'], env, output_dir)
+        _start_nodes(children, seed, env, output_dir)
         _progress(f'started the estimator (pid {children["estimator"].process.pid}) and '
                   f'the simulator (pid {children["simulator"].process.pid})')
         # rcl reads the discovery range from the environment at init.
         os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = env['ROS_AUTOMATIC_DISCOVERY_RANGE']
-        rclpy.init(context=context, domain_id=domain_id,
-                   signal_handler_options=SignalHandlerOptions.NO)
-        probe = Probe(context=context, subscribe_measurement=False)
-        executor = SingleThreadedExecutor(context=context)
-        executor.add_node(probe)
+        executor, probe = demo_nodes.start_probe(context, domain_id)
         if not _spin_until(executor, probe.sees_nodes, DISCOVERY_TIMEOUT_S, children):
             raise DemoError(
                 f'discovery timed out after {DISCOVERY_TIMEOUT_S:g} s: the probe does not '
@@ -253,8 +181,8 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
         # user-chosen domain), so no sample goes out before the probe listens.
         probe.subscribe_measurement()
         subscribers = max(2, probe.count_subscribers('measurement'))
-        problem = set_parameter(executor, probe, 'simulator', 'min_subscribers', subscribers,
-                                DISCOVERY_TIMEOUT_S)
+        problem = demo_nodes.set_parameter(executor, probe, 'simulator', 'min_subscribers',
+                                           subscribers, DISCOVERY_TIMEOUT_S)
         if problem is not None:
             raise DemoError(f'cannot release the simulator: {problem}')
         _progress(f'both nodes up; sampling for {SAMPLES / RATE_HZ:g} s')
@@ -281,6 +209,20 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
     (output_dir / 'report.txt').write_text(report + '\n')
     _progress(f'wrote report.txt and series.csv to {output_dir}')
     return report
+
+
+def _start_nodes(children: Dict[str, _Child], seed: int, env: Dict[str, str],
+                 output_dir: Path) -> None:
+    """Start the estimator and the simulator (holding its samples) into ``children``."""
+    # The estimator first: its subscription exists before the simulator looks.
+    children['estimator'] = _start('estimator', [
+        '-p', 'initialization:=prior', '-p', f'horizon_s:={HORIZON_S!r}'],
+        env, output_dir)
+    children['simulator'] = _start('simulator', [
+        '-p', f'seed:={seed}', '-p', f'rate_hz:={RATE_HZ!r}',
+        '-p', f'max_samples:={SAMPLES}',
+        # Hold the first sample until told how many subscribers to wait for.
+        '-p', f'min_subscribers:={HOLD_SUBSCRIBERS}'], env, output_dir)
 
 
 def demo_environment(environ) -> Dict[str, str]:
@@ -357,57 +299,11 @@ def settings_from_parameters(values: Dict[str, object]) -> EstimatorSettings:
     return EstimatorSettings(**settings)
 
 
-def fetch_parameters(executor, node: Node, target: str, names: Sequence[str],
-                     timeout_s: float, attempt_s: float = 2.0) -> Optional[Dict[str, object]]:
-    """
-    Return parameters of node ``target`` by a service round trip, or None after timeout_s.
-
-    A call is repeated every ``attempt_s``: one made while discovery is still going on
-    may be lost. Undeclared parameters come back as None.
-    """
-    names = list(names)
-    response = _call_until_answered(
-        executor, AsyncParameterClient(node, target),
-        lambda client: client.get_parameters(names), timeout_s, attempt_s)
-    if response is None:
-        return None
-    return {name: parameter_value_to_python(value)
-            for name, value in zip(names, response.values)}
-
-
-def set_parameter(executor, node: Node, target: str, name: str, value,
-                  timeout_s: float, attempt_s: float = 2.0) -> Optional[str]:
-    """Set one parameter of node ``target``; return None on success, else the reason."""
-    response = _call_until_answered(
-        executor, AsyncParameterClient(node, target),
-        lambda client: client.set_parameters([Parameter(name, value=value)]),
-        timeout_s, attempt_s)
-    if response is None:
-        return f'{target} did not answer within {timeout_s:g} s'
-    result = response.results[0]
-    return None if result.successful else result.reason
-
-
-def _call_until_answered(executor, client: AsyncParameterClient, call, timeout_s: float,
-                         attempt_s: float):
-    """Return the response of ``call(client)``, repeated every attempt_s; None on timeout."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if not client.wait_for_services(
-                timeout_sec=max(0.0, min(attempt_s, deadline - time.monotonic()))):
-            continue
-        future = call(client)
-        executor.spin_until_future_complete(
-            future, timeout_sec=max(0.0, min(attempt_s, deadline - time.monotonic())))
-        if future.done() and future.result() is not None:
-            return future.result()
-    return None
-
-
-def _estimator_settings(executor, probe: Probe) -> EstimatorSettings:
+def _estimator_settings(executor, probe: demo_nodes.Probe) -> EstimatorSettings:
     """Ask the estimator node for its parameters; return the settings it runs with."""
     names = sorted(field.name for field in dataclasses.fields(EstimatorSettings))
-    values = fetch_parameters(executor, probe, 'estimator', names, DISCOVERY_TIMEOUT_S)
+    values = demo_nodes.fetch_parameters(executor, probe, 'estimator', names,
+                                         DISCOVERY_TIMEOUT_S)
     if values is None:
         raise DemoError(f'the estimator did not answer get_parameters within '
                         f'{DISCOVERY_TIMEOUT_S:g} s')
@@ -415,7 +311,7 @@ def _estimator_settings(executor, probe: Probe) -> EstimatorSettings:
     return settings_from_parameters({n: v for n, v in values.items() if v is not None})
 
 
-def _complete(probe: Probe) -> bool:
+def _complete(probe: demo_nodes.Probe) -> bool:
     """Return whether every topic has delivered all samples."""
     return all(n >= SAMPLES for n in probe.counts().values())
 
@@ -468,7 +364,7 @@ def _raise_on_sigterm():
         return None
 
 
-def build_series(probe: Probe, seed: int, settings: EstimatorSettings) -> DemoSeries:
+def build_series(probe: demo_nodes.Probe, seed: int, settings: EstimatorSettings) -> DemoSeries:
     """Join the recorded messages by stamp and recompute everything offline."""
     settings = settings.resolved()  # the preset's values where the settings leave None
     measurements = sorted((messages.from_measurement_msg(m)
@@ -490,7 +386,7 @@ def build_series(probe: Probe, seed: int, settings: EstimatorSettings) -> DemoSe
 
     period_ns = round(NS_PER_S / RATE_HZ)
     t0_ns = stamps[0] - period_ns
-    offline = TrainEstimator(settings)
+    offline = StreamEstimator(settings)
     x_hist, var_hist, P_hist = [], [], []
     prediction_stamps, predicted_x, predicted_var = [], [], []
     diffs = [0.0]
@@ -577,7 +473,7 @@ def format_report(series: DemoSeries, domain_id: int, seed: int,
                      f'{error:>+8.3f}  {ratio_text:>7}')
     lines += [
         '',
-        f'DDS vs offline core (TrainEstimator, same stamps and measurements): '
+        f'DDS vs offline core (StreamEstimator, same stamps and measurements): '
         f'max |difference| = {series.offline_max_abs_diff:.3g}',
         f'measurements and truth vs the seeded offline simulation: '
         f'max |difference| = {series.simulation_max_abs_diff:.3g}',

@@ -20,7 +20,7 @@ import shutil
 import tempfile
 import time
 
-from kf_train.batch.partition import filter_partition, partition_meta
+from kf_train.batch import filter_partition, partition_meta
 from kf_train.cli import replay as inmemory
 
 KEY = '_kf_train_row'

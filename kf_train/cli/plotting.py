@@ -23,12 +23,10 @@ import os
 import sys
 from typing import Dict, List, Optional, Sequence
 
-from kf_train.batch.series import run_series
-from kf_train.filters.ekf import RangeBearing
-from kf_train.filters.validation import as_duration, as_finite_array, as_vector
-from kf_train.presets.loader import available_presets, load_preset, Preset
-from kf_train.sim import baselines
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.batch import run_series
+from kf_train.filters import as_duration, as_finite_array, as_vector, RangeBearing
+from kf_train.presets import available_presets, load_preset, Preset
+from kf_train.sim import baselines, scenario_for_preset
 import numpy as np
 
 EXIT_OK = 0
@@ -123,9 +121,18 @@ def build_seed000_figures(t_s, measured_m, truth_m, x_hist, P_hist, dt_s) -> Dic
     ax.legend(loc='best')
     figures['seed000_velocity'] = figure
 
-    # Extrapolation to t_N + 2 s from each of the last Nlast + 1 samples. As in the
-    # seed, both projections start from the Kalman position; the running average
-    # supplies only its velocity.
+    figures['seed000_extrapolation'] = _extrapolation_figure(t, truth, x_hist, average, dt_s)
+    return figures
+
+
+def _extrapolation_figure(t, truth, x_hist, average, dt_s: float):
+    """
+    Return seed 000's figure of the extrapolation to t_N + 2 s from each of the last samples.
+
+    As in the seed, both projections start from the Kalman position; the running
+    average (N + 1 values, index 0 at t0) supplies only its velocity.
+    """
+    N = t.shape[0]
     ahead_samples = int(round(SEED000_HORIZON_S / dt_s))
     last = slice(max(0, N - SEED000_LAST_SAMPLES - 1), N)
     t_last = t[last]
@@ -143,8 +150,7 @@ def build_seed000_figures(t_s, measured_m, truth_m, x_hist, P_hist, dt_s) -> Dic
            xlabel='Time of sample used for extrapolation (s)',
            ylabel='Expected position (m)')
     ax.legend(loc='best')
-    figures['seed000_extrapolation'] = figure
-    return figures
+    return figure
 
 
 def seed000_figures(output_dir: str, t_s, measured_m, truth_m, x_hist, P_hist,

@@ -59,17 +59,15 @@ import time
 from typing import Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 import warnings
 
-from kf_train.batch.series import (
-    bank_time_steps, group_rows, Groups, MAX_ABS_TIME_S, NS_PER_S, run_bank,
-    run_filter_series, run_linear_series, run_series, SeriesError, SeriesResult,
+from kf_train.batch import (
+    bank_time_steps, group_rows, Groups, MAX_ABS_TIME_S, rts_smooth, run_bank, run_filter_series,
+    run_linear_series, run_series, SeriesError, SeriesResult, smooth_series, SmootherResult,
     TimeOrderError)
-from kf_train.batch.smoother import rts_smooth, smooth_series, SmootherResult
+from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
-from kf_train.filters.family import (
-    add_filter_options, Filter, FILTER_KINDS, filter_options, make_filter)
+from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S
 from kf_train.io import csvio
-from kf_train.presets.loader import (
-    available_presets, load_preset, load_preset_file, Preset)
+from kf_train.presets import available_presets, load_preset, load_preset_file, Preset
 import numpy as np
 
 EXIT_OK = 0

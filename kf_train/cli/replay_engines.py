@@ -13,7 +13,7 @@ How ``kf-train replay`` runs: streamed in bounded memory, all in memory, or on D
 import argparse
 import os
 
-from kf_train.batch.chunked import DEFAULT_BLOCK_ROWS
+from kf_train.batch import DEFAULT_BLOCK_ROWS
 
 ENGINES = ('stream', 'memory', 'dask')
 CODECS = ('auto', 'polars', 'builtin')

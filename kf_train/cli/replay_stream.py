@@ -25,8 +25,7 @@ import sys
 import time
 from typing import Dict, Iterator, List, Optional
 
-from kf_train.batch.chunked import DEFAULT_BLOCK_ROWS, RowError, Rows
-from kf_train.batch.stream import StreamingReplay
+from kf_train.batch import DEFAULT_BLOCK_ROWS, RowError, Rows, StreamingReplay
 from kf_train.cli import replay as inmemory
 from kf_train.io import columnar
 import numpy as np

@@ -1,15 +1,27 @@
-"""kf_train's pure-Python core: numpy only, no ROS imports."""
+"""
+The old flat core's public API, re-exported for one release: import from the floors.
 
-from kf_train.estimator.estimator import EstimateStep, EstimatorSettings, TrainEstimator
-from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
-from kf_train.filters.models import (
-    constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearModel,
-    PerStepNoise, POSITION_H, WhiteNoiseAcceleration)
-from kf_train.sim.simulation import TrainSample, TrainSeries, TrainSimulation
+kf_train.core was 20 flat modules; they now live in :mod:`kf_train.filters`,
+:mod:`kf_train.presets`, :mod:`kf_train.estimator`, :mod:`kf_train.batch`,
+:mod:`kf_train.sim` and :mod:`kf_train.io` (README, "The floors"). This module only
+re-exports what ``kf_train.core`` exported, under the same names; ``TrainEstimator``
+is :class:`kf_train.estimator.StreamEstimator`, kept under its old name here and
+nowhere else. Nothing inside kf_train imports this module; it goes in the next release.
+"""
+
+from kf_train.estimator import EstimateStep, EstimatorSettings, StreamEstimator
+from kf_train.filters import (
+    constant_velocity_F, constant_velocity_model, ConstantVelocityModel, KalmanFilter,
+    LinearModel, PerStepNoise, POSITION_H, predict, update, UpdateResult,
+    WhiteNoiseAcceleration)
+from kf_train.sim import TrainSample, TrainSeries, TrainSimulation
+
+TrainEstimator = StreamEstimator
+"""The old name of :class:`kf_train.estimator.StreamEstimator` (it runs every preset)."""
 
 __all__ = [
     'ConstantVelocityModel', 'EstimateStep', 'LinearModel', 'EstimatorSettings', 'KalmanFilter',
-    'PerStepNoise', 'POSITION_H', 'TrainEstimator', 'TrainSample', 'TrainSeries',
-    'TrainSimulation', 'UpdateResult', 'WhiteNoiseAcceleration', 'constant_velocity_F',
-    'constant_velocity_model', 'predict', 'update',
+    'PerStepNoise', 'POSITION_H', 'StreamEstimator', 'TrainEstimator', 'TrainSample',
+    'TrainSeries', 'TrainSimulation', 'UpdateResult', 'WhiteNoiseAcceleration',
+    'constant_velocity_F', 'constant_velocity_model', 'predict', 'update',
 ]

@@ -1,1 +1,58 @@
-"""Floor 1, the filter mathematics: numpy only (Kalman, models, EKF, UKF, particle, χ²)."""
+"""
+Floor 1, the filter mathematics: numpy only, no ROS, no command line.
+
+Kalman predict/update in Joseph form (:mod:`.kalman`), the motion models and THE
+white-noise Q(dt) (:mod:`.models`), the 2-state step in closed form
+(:mod:`.closed_form`) and the filter built on it (:mod:`.fast`), the EKF
+(:mod:`.ekf`), UKF (:mod:`.ukf`), particle filter (:mod:`.particle`), the χ²
+distribution (:mod:`.chi2`), the input checks (:mod:`.validation`), time units
+(:mod:`.units`) and the family behind one interface (:mod:`.family`, make_filter).
+Other floors import from here, never from the modules.
+"""
+
+from kf_train.filters import closed_form, kalman
+from kf_train.filters.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
+from kf_train.filters.closed_form import FastUpdate, noise_terms_function, NoiseModel
+from kf_train.filters.ekf import (
+    ekf_update, ExtendedKalmanFilter, ExtendedModel, FunctionMeasurement, RangeBearing, TWO_PI,
+    wrap_angle)
+from kf_train.filters.family import (
+    check_kind, DEFAULT_PARTICLES, Filter, FILTER_KINDS, FilterOptions, gaussian_model,
+    GaussianFilter, make_filter, ParticlePresetFilter)
+from kf_train.filters.fast import FastRun, FastTrainFilter
+from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
+from kf_train.filters.models import (
+    constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
+    LinearModel, per_step_noise_terms, per_step_periods, per_step_weights, PerStepNoise,
+    POSITION_H, ProcessNoise, white_noise_integrals, white_noise_terms, white_noise_terms_into,
+    WhiteNoiseAcceleration)
+from kf_train.filters.particle import (
+    check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
+    ParticleFilter, psd_factor, Snapshot, systematic_resample)
+from kf_train.filters.ukf import (
+    batch_measurement, BatchMeasurement, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
+    keep_positive_definite, MerweScaledSigmaPoints, robust_cholesky, SquareRoot, Transformed,
+    unscented_moments, unscented_predict, unscented_update, UnscentedModel)
+from kf_train.filters.units import NS_PER_S, seconds_to_ns
+from kf_train.filters.validation import (
+    as_covariance, as_duration, as_finite_array, as_matrix, as_vector, COVARIANCE_RTOL)
+
+__all__ = [
+    'as_covariance', 'as_duration', 'as_finite_array', 'as_matrix', 'as_vector',
+    'batch_measurement', 'BatchMeasurement', 'check_kind', 'check_particles', 'check_seed',
+    'chi2_cdf', 'chi2_mean_bounds', 'chi2_quantile', 'chi2_sf', 'closed_form',
+    'constant_velocity_F', 'constant_velocity_model', 'ConstantVelocityModel',
+    'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA', 'DEFAULT_PARTICLES',
+    'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter', 'ExtendedModel',
+    'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS', 'FilterOptions',
+    'FunctionMeasurement', 'gaussian_model', 'GaussianFilter', 'kalman', 'KalmanFilter',
+    'keep_positive_definite', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
+    'make_filter', 'MAX_PARTICLES', 'MerweScaledSigmaPoints', 'noise_terms_function',
+    'NoiseModel', 'NS_PER_S', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
+    'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
+    'ProcessNoise', 'psd_factor', 'RangeBearing', 'robust_cholesky', 'seconds_to_ns',
+    'Snapshot', 'SquareRoot', 'systematic_resample', 'Transformed', 'TWO_PI',
+    'unscented_moments', 'unscented_predict', 'unscented_update', 'UnscentedModel', 'update',
+    'UpdateResult', 'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',
+    'WhiteNoiseAcceleration', 'wrap_angle',
+]

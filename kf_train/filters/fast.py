@@ -6,30 +6,27 @@ The model is the one :mod:`kf_train.filters.models` builds for the train: state
 ``H = [1, 0]`` with scalar variance R, and process noise Q(dt) from
 :class:`~kf_train.filters.models.WhiteNoiseAcceleration`,
 :class:`~kf_train.filters.models.PerStepNoise` or any callable dt -> 2x2 matrix.
-Written out entry by entry, a predict and update cost about as much as the
-arithmetic itself: no numpy call, no temporary array.
+The arithmetic is :mod:`kf_train.filters.closed_form` (predict, and the Joseph form
+reduced for the optimal gain); :meth:`FastTrainFilter.step` and
+:meth:`FastTrainFilter.run` transcribe it inline, so that a predict and update cost
+about as much as the arithmetic itself: no numpy call, no temporary array, no call.
 
 The results are those of :func:`kf_train.filters.kalman.predict` and
-:func:`kf_train.filters.kalman.update` to rounding; the tests hold them to 1e-9. The
-update is the generic path's Joseph form, P = (I - K H) P⁻ (I - K H)ᵀ + K R Kᵀ,
-written out for this H and the optimal K, where it reduces exactly to
-P00 = a·P⁻00, P01 = a·P⁻01, P11 = P⁻11 - K1·P⁻01 with a = 1 - K0 = R/S (see
-:meth:`FastTrainFilter.step`). Taking a = R/S rather than 1 - K0 avoids the
-cancellation when R ≪ P⁻00, and keeps P00 >= 0 in floating point.
-The checks are the generic path's too: a bad input raises ``ValueError`` naming it,
-a step that would overflow raises, and either leaves the filter exactly as it was.
+:func:`kf_train.filters.kalman.update` to rounding; the tests hold them to 1e-9, and
+the inline copies to closed_form bit for bit. The checks are the generic path's too:
+a bad input raises ``ValueError`` naming it, a step that would overflow raises, and
+either leaves the filter exactly as it was.
 """
 
 import math
-from typing import Callable, NamedTuple, Optional, Tuple, Union
+from typing import NamedTuple, Optional, Tuple
 
-from kf_train.filters.models import per_step_noise_terms, PerStepNoise, WhiteNoiseAcceleration
+from kf_train.filters.closed_form import (
+    correct, FastUpdate, noise_terms_function, NoiseModel, predict)
 from kf_train.filters.validation import as_covariance, as_duration, as_finite_array, as_vector
 import numpy as np
 
 _INF = float('inf')
-
-NoiseModel = Union[None, WhiteNoiseAcceleration, PerStepNoise, Callable[[float], object]]
 
 
 def _number(name: str, value) -> float:
@@ -41,70 +38,6 @@ def _number(name: str, value) -> float:
     if not -_INF < number < _INF:
         raise ValueError(f'{name} must be a finite number, got {number}')
     return number
-
-
-def white_noise_terms(q: float, dt: float) -> Tuple[float, float, float]:
-    """Return (Q00, Q01, Q11) of q·[[dt³/3, dt²/2], [dt²/2, dt]], as models.py computes it."""
-    return q * (dt ** 3 / 3.0), q * (dt ** 2 / 2.0), q * dt
-
-
-def noise_terms_function(noise: NoiseModel) -> Callable[[float], Tuple[float, float, float]]:
-    """
-    Return a function dt -> (Q00, Q01, Q11) for a process-noise model.
-
-    ``None`` means no process noise. A WhiteNoiseAcceleration or PerStepNoise is
-    evaluated in closed form; any other callable dt -> 2x2 matrix is called and its
-    result checked (symmetric, positive semi-definite), raising ValueError naming Q.
-    """
-    if noise is None:
-        return lambda dt: (0.0, 0.0, 0.0)
-    if type(noise) is WhiteNoiseAcceleration:
-        q = float(noise.q)
-        return lambda dt: white_noise_terms(q, dt)
-    if type(noise) is PerStepNoise:
-        a, c, b = (float(noise.Q_step[0, 0]), float(noise.Q_step[0, 1]),
-                   float(noise.Q_step[1, 1]))
-        period_s = float(noise.period_s)
-        return lambda dt: per_step_noise_terms(a, c, b, period_s, dt)
-    if not callable(noise):
-        raise ValueError(f'noise must be None, WhiteNoiseAcceleration, PerStepNoise or a '
-                         f'callable dt -> Q, got {noise!r}')
-
-    def terms(dt: float) -> Tuple[float, float, float]:
-        Q = as_covariance('Q', noise(dt), 2)
-        return float(Q[0, 0]), float(Q[0, 1]), float(Q[1, 1])
-    return terms
-
-
-class FastUpdate(NamedTuple):
-    """The innovation statistics of one update, as plain floats."""
-
-    innovation: float
-    """y = z - x⁻[0] [m]."""
-    innovation_variance: float
-    """S = P⁻[0, 0] + R [m²]."""
-    nis: float
-    """y² / S."""
-    gain: Tuple[float, float]
-    """K = P⁻ Hᵀ / S."""
-
-
-def correct(x0: float, x1: float, p00: float, p01: float, p11: float, z: float,
-            R: float) -> Tuple[Tuple[float, float, float, float, float], FastUpdate]:
-    """
-    Return the posterior (x0, x1, P00, P01, P11) and statistics of one update.
-
-    The prior is [x0, x1] with covariance [[p00, p01], [p01, p11]]; z [m] is a
-    position measurement of variance R [m²]. Floats in, floats out, unchecked: the
-    arithmetic :meth:`FastTrainFilter.step` does after its predict.
-    """
-    s = p00 + R                         # S = H P⁻ Hᵀ + R
-    y = z - x0                          # y = z - H x⁻
-    k0 = p00 / s                        # K = P⁻ Hᵀ / S
-    k1 = p01 / s
-    a = R / s                           # the Joseph form for this K (see step)
-    posterior = (x0 + k0 * y, x1 + k1 * y, a * p00, a * p01, p11 - k1 * p01)
-    return posterior, FastUpdate(y, s, y * y / s, (k0, k1))
 
 
 class FastTrainFilter:
@@ -244,12 +177,7 @@ class FastTrainFilter:
         """Propagate the state over dt_s >= 0 seconds."""
         dt = dt_s if type(dt_s) is float else _number('dt', dt_s)
         q00, q01, q11 = self._noise_for(dt)
-        x0, x1, p00, p01, p11 = self._s[:5]
-        p01_dt = p01 + dt * p11             # x⁻ = F x;  P⁻ = F P Fᵀ + Q
-        x0 = x0 + dt * x1
-        p00 = p00 + dt * (p01 + p01_dt) + q00
-        p01 = p01_dt + q01
-        p11 = p11 + q11
+        x0, x1, p00, p01, p11 = predict(*self._s[:5], dt, q00, q01, q11)
         if not 0.0 * (x0 + p00 + p01 + p11) == 0.0:
             _overflow('prediction', x0, p00, p01, p11)
         self._s = (x0, x1, p00, p01, p11) + self._s[5:]
@@ -310,6 +238,8 @@ class FastTrainFilter:
             self._c = self._c[:4] + (r,)
         R = r
         x0, x1, p00, p01, p11, _, _, _, _, _ = self._s
+        # closed_form.predict and closed_form.correct, inline (calling them would make
+        # a step ~1.7x as slow), operation for operation: a test holds them bit for bit.
         # Predict: x⁻ = F x;  P⁻ = F P Fᵀ + Q with F = [[1, dt], [0, 1]]:
         #   P⁻00 = P00 + dt (P01 + (P01 + dt P11)) + Q00
         #   P⁻01 = P01 + dt P11 + Q01;  P⁻11 = P11 + Q11
@@ -366,40 +296,7 @@ class FastTrainFilter:
         rs = _series('R', R, n)
         if min(rs, default=0.0) < 0.0:
             raise ValueError(f'R must be >= 0, got {min(rs)}')
-        x0, x1, p00, p01, p11 = self._s[:5]
-        q_dt, q00, q01, q11, _ = self._c
-        # One flat list of floats: a list of per-row tuples would keep the garbage
-        # collector busy scanning them.
-        flat = []
-        extend = flat.extend
-        try:
-            for z_i, dt, r in zip(z.tolist(), dts, rs):
-                if dt != q_dt:
-                    q00, q01, q11 = self._noise_for(dt)
-                    q_dt = dt
-                # The arithmetic of step(), line for line.
-                p01_dt = p01 + dt * p11
-                x0 = x0 + dt * x1
-                p00 = p00 + dt * (p01 + p01_dt) + q00
-                p01 = p01_dt + q01
-                p11 = p11 + q11
-                s = p00 + r
-                y = z_i - x0
-                k0 = p00 / s
-                k1 = p01 / s
-                a = r / s
-                p11 = p11 - k1 * p01
-                p00 = a * p00
-                p01 = a * p01
-                x0 = x0 + k0 * y
-                x1 = x1 + k1 * y
-                extend((x0, x1, p00, p01, p11, y, s))
-        except ZeroDivisionError:
-            stopped = None  # S = 0 in the row after the last one kept: step() names it
-        except ValueError as error:
-            stopped = error  # Q(dt) failed in the row after the last one kept
-        else:
-            stopped = False
+        flat, stopped = self._rows(z.tolist(), dts, rs)
         out = np.fromiter(flat, float, len(flat)).reshape(-1, 7)
         nis = out[:, 5] * out[:, 5] / out[:, 6]  # y² / S, as step() computes it
         good = np.isfinite(out).all(axis=1) & (nis >= 0.0) & (nis < _INF)
@@ -419,6 +316,48 @@ class FastTrainFilter:
             self._commit_row(out[-1], float(nis[-1]))
         return FastRun(x=out[:, 0:2], P=_covariances(out[:, 2], out[:, 3], out[:, 4]),
                        innovation=out[:, 5], innovation_variance=out[:, 6], nis=nis)
+
+    def _rows(self, zs: list, dts: list, rs: list):
+        """
+        Return (flat, stopped): (x0, x1, P00, P01, P11, y, S) of each row, in one list.
+
+        ``stopped`` is False when every row ran, None when S = 0 stopped the loop (the
+        row after the last one kept; step() names it) and the ValueError of Q(dt) when
+        that stopped it. The filter itself is not changed.
+        """
+        x0, x1, p00, p01, p11 = self._s[:5]
+        q_dt, q00, q01, q11, _ = self._c
+        # One flat list of floats: a list of per-row tuples would keep the garbage
+        # collector busy scanning them.
+        flat = []
+        extend = flat.extend
+        try:
+            for z_i, dt, r in zip(zs, dts, rs):
+                if dt != q_dt:
+                    q00, q01, q11 = self._noise_for(dt)
+                    q_dt = dt
+                # The arithmetic of step() (closed_form, inline), line for line.
+                p01_dt = p01 + dt * p11
+                x0 = x0 + dt * x1
+                p00 = p00 + dt * (p01 + p01_dt) + q00
+                p01 = p01_dt + q01
+                p11 = p11 + q11
+                s = p00 + r
+                y = z_i - x0
+                k0 = p00 / s
+                k1 = p01 / s
+                a = r / s
+                p11 = p11 - k1 * p01
+                p00 = a * p00
+                p01 = a * p01
+                x0 = x0 + k0 * y
+                x1 = x1 + k1 * y
+                extend((x0, x1, p00, p01, p11, y, s))
+        except ZeroDivisionError:
+            return flat, None
+        except ValueError as error:
+            return flat, error
+        return flat, False
 
     def _commit_row(self, row: np.ndarray, nis: float) -> None:
         """Set the state and statistics from a row of run(): (x0, x1, P00, P01, P11, y, S)."""

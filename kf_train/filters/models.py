@@ -35,6 +35,50 @@ def _finite_noise(Q: np.ndarray, dt: float) -> np.ndarray:
     return Q
 
 
+def white_noise_integrals(dt):
+    """
+    Return (dt³/3, dt²/2, dt), the integrals of s², s and 1 over [0, dt].
+
+    They weigh a continuous white noise carried through F(s) = I + s·A (A² = 0):
+    ∫₀^dt F(s) Qc F(s)ᵀ ds = dt·Qc + dt²/2·(A Qc + Qc Aᵀ) + dt³/3·A Qc Aᵀ. For the
+    train's A and Qc = diag(0, q) that is Q(dt) = q·[[dt³/3, dt²/2], [dt²/2, dt]].
+    ``dt`` is a float or an array (then elementwise, with the same operations).
+    """
+    return dt ** 3 / 3.0, dt ** 2 / 2.0, dt
+
+
+def white_noise_terms(q: float, dt: float) -> Tuple[float, float, float]:
+    """
+    Return (Q00, Q01, Q11) of Q(dt) = q·[[dt³/3, dt²/2], [dt²/2, dt]]: THE white-noise Q(dt).
+
+    Every path that needs a white-noise acceleration's Q(dt) gets it here, or from
+    :func:`white_noise_terms_into` (the fleet's vectorised form, beside it).
+    A float dt so large that dt³ overflows raises OverflowError (float powers do).
+    """
+    third, half, one = white_noise_integrals(dt)
+    return q * third, q * half, q * one
+
+
+def white_noise_terms_into(q: float, dt: np.ndarray, out) -> Tuple[np.ndarray, ...]:
+    """
+    Write :func:`white_noise_terms` of an array dt into ``out`` (three arrays); return them.
+
+    The fleet's form: no temporaries, so a chunk stays in the CPU cache, and dt³ as
+    dt²·dt. dt² is correctly rounded here (CPython's dt ** 2 is not always), and dt³
+    rounds twice where pow rounds once: an entry may differ from
+    :func:`white_noise_terms`' by an ulp or two; pow per element would cost more than
+    the rest of a fleet step.
+    """
+    q00, q01, q11 = (a[:dt.shape[0]] for a in out)
+    np.multiply(dt, dt, out=q01)
+    np.multiply(q01, dt, out=q00)
+    np.divide(q00, 3.0, out=q00)
+    np.multiply(q00, q, out=q00)            # Q00 = q·(dt³/3)
+    np.multiply(q01, 0.5 * q, out=q01)      # Q01 = q·(dt²/2), halving being exact
+    np.multiply(dt, q, out=q11)             # Q11 = q·dt
+    return q00, q01, q11
+
+
 class WhiteNoiseAcceleration:
     """Process noise from a white-noise acceleration of density q [m²/s³]."""
 
@@ -46,10 +90,11 @@ class WhiteNoiseAcceleration:
         """Return Q(dt) = q · [[dt³/3, dt²/2], [dt²/2, dt]]."""
         dt = as_duration('dt', dt)
         try:
-            Q = self.q * np.array([[dt ** 3 / 3.0, dt ** 2 / 2.0],
-                                   [dt ** 2 / 2.0, dt]])
+            q00, q01, q11 = white_noise_terms(self.q, dt)
         except OverflowError:  # Python float powers raise where numpy would give inf
             Q = np.full((2, 2), np.inf)
+        else:
+            Q = np.array([[q00, q01], [q01, q11]])
         with np.errstate(invalid='ignore'):
             return _finite_noise(Q, dt)
 
@@ -81,6 +126,35 @@ def per_step_noise_terms(a: float, c: float, b: float, period_s: float,
     s1 = n * r + T * n * (n - 1) / 2.0
     s2 = n * r ** 2 + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
     return a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1, b * s0
+
+
+def per_step_periods(dt, period_s: float) -> Tuple[np.ndarray, np.ndarray]:
+    """Return (n, r) for an array dt = n·T + r: whole periods T and the remainder 0 <= r <= T."""
+    dt = np.asarray(dt, dtype=float)
+    T = float(period_s)
+    n = np.floor(dt / T)
+    r = dt - n * T
+    low = r < 0.0  # rounding when dt is a whole number of periods
+    return np.where(low, n - 1.0, n), np.where(low, r + T, r)
+
+
+def per_step_weights(dt, period_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return the sums S0 = Σw, S1 = Σw·s, S2 = Σw·s² of per-step noise for an array dt.
+
+    :func:`per_step_noise_terms` for arrays, with the same operations: a dt of n whole
+    periods T plus a remainder r collects the noise of n full steps, the step ending at
+    i·T carried to dt over s = dt - i·T = r + j·T (j = 0..n-1, weight 1), and a
+    fraction r/T of a step at s = 0. Written in r and j every term is >= 0 (no
+    cancellation), and dt = T gives (1, 0, 0) exactly.
+    """
+    T = float(period_s)
+    n, r = per_step_periods(dt, T)
+    s0 = n + r / T                                              # Σ w
+    s1 = n * r + T * n * (n - 1.0) / 2.0                        # Σ w·s
+    s2 = (n * r ** 2 + r * T * n * (n - 1.0)
+          + T ** 2 * (n - 1.0) * n * (2.0 * n - 1.0) / 6.0)     # Σ w·s²
+    return s0, s1, s2
 
 
 class PerStepNoise:

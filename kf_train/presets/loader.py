@@ -41,10 +41,9 @@ from dataclasses import dataclass
 import os
 from typing import Any, Dict, List, Mapping, Optional, Sequence, Tuple, Union
 
-from kf_train.filters.ekf import ExtendedModel, RangeBearing
-from kf_train.filters.models import LinearModel
-from kf_train.filters.validation import (
-    as_covariance, as_duration, as_finite_array, as_matrix, as_vector)
+from kf_train.filters import (
+    as_covariance, as_duration, as_finite_array, as_matrix, as_vector, ExtendedModel, LinearModel,
+    per_step_weights, RangeBearing, white_noise_integrals)
 import numpy as np
 
 PRESET_DIR = os.path.dirname(os.path.abspath(__file__))
@@ -175,29 +174,6 @@ class ControlMatrix:
 # Dynamics: F(dt) = I + dt·A with A² = 0, and the process noise
 # ---------------------------------------------------------------------------
 
-def per_step_weights(dt: np.ndarray, period_s: float) -> Tuple[np.ndarray, ...]:
-    """
-    Return the sums S0 = Σw, S1 = Σw·s, S2 = Σw·s² of per-step noise over each dt.
-
-    A dt of n whole periods T plus a remainder r collects the noise of n full steps,
-    the step ending at i·T carried to dt over s = dt - i·T = r + j·T (j = 0..n-1,
-    weight 1), and a fraction r/T of a step at s = 0. Written in r and j every term
-    is >= 0 (no cancellation), and dt = T gives (1, 0, 0) exactly.
-    """
-    dt = np.asarray(dt, dtype=float)
-    T = float(period_s)
-    n = np.floor(dt / T)
-    r = dt - n * T
-    low = r < 0.0  # rounding when dt is a whole number of periods
-    n = np.where(low, n - 1.0, n)
-    r = np.where(low, r + T, r)
-    s0 = n + r / T                                              # Σ w
-    s1 = n * r + T * n * (n - 1.0) / 2.0                        # Σ w·s
-    s2 = (n * r ** 2 + r * T * n * (n - 1.0)
-          + T ** 2 * (n - 1.0) * n * (2.0 * n - 1.0) / 6.0)     # Σ w·s²
-    return s0, s1, s2
-
-
 class Dynamics:
     """
     The process model of a preset, vectorised over dt.
@@ -262,9 +238,10 @@ class Dynamics:
         if self.continuous is not None:
             Qc = self.continuous
             # ∫₀^dt F(s) Qc F(s)ᵀ ds = dt·Qc + dt²/2·(A Qc + Qc Aᵀ) + dt³/3·A Qc Aᵀ
-            Q += (dt[:, None, None] * Qc
-                  + (dt ** 2 / 2.0)[:, None, None] * (A @ Qc + Qc @ A.T)
-                  + (dt ** 3 / 3.0)[:, None, None] * (A @ Qc @ A.T))
+            third, half, one = white_noise_integrals(dt)
+            Q += (one[:, None, None] * Qc
+                  + half[:, None, None] * (A @ Qc + Qc @ A.T)
+                  + third[:, None, None] * (A @ Qc @ A.T))
         if self.control_std is not None:
             Bd = self.B.batch(dt) * self.control_std  # B(dt) diag(std)
             Q += Bd @ np.swapaxes(Bd, -1, -2)         # B diag(std²) Bᵀ
@@ -479,85 +456,17 @@ def _build(data: Mapping[str, Any], source: str) -> Preset:
     states = _names(data, 'states')
     measurements = _names(data, 'measurements')
     controls = _names(data, 'controls', required=False)
-    n, m, p = len(states), len(measurements), len(controls)
+    n, m = len(states), len(measurements)
     if 'motion' not in data:
         raise ValueError("'motion' is required")
     A = _motion(data['motion'], states)
-
-    if p:
-        if 'B' not in data:
-            raise ValueError("'B' is required when 'controls' are given")
-        B = ControlMatrix(data['B'], n, p, 'B')
-    else:
-        if data.get('B') is not None:
-            raise ValueError("'B' is given but 'controls' is not")
-        B = None
-
-    noise = data.get('process_noise')
-    if not isinstance(noise, Mapping) or not noise:
-        raise ValueError(f"'process_noise' must be a mapping with one or more of "
-                         f"{', '.join(_NOISE_KEYS)}, got {noise!r}")
-    for key in noise:
-        if key not in _NOISE_KEYS:
-            raise ValueError(f"unknown key 'process_noise.{key}'; use {', '.join(_NOISE_KEYS)}")
-    if 'nominal_period_s' not in data:
-        raise ValueError("'nominal_period_s' is required")
-    period = _number('nominal_period_s', data['nominal_period_s'])
-    if period <= 0.0:
-        raise ValueError(f'nominal_period_s must be > 0, got {period}')
-    per_step = None if noise.get('per_step') is None else _covariance(
-        'process_noise.per_step', noise['per_step'], n)
-    continuous = None if noise.get('continuous') is None else _covariance(
-        'process_noise.continuous', noise['continuous'], n)
-    dynamics = Dynamics(A, period_s=period, per_step=per_step, continuous=continuous,
-                        control_std=noise.get('control_std'), B=B)
-
+    dynamics, period = _dynamics(data, A, n, len(controls))
     if 'R' not in data:
         raise ValueError("'R' is required")
     R = _covariance('R', data['R'], m)
     if float(np.min(np.linalg.eigvalsh(R))) <= 0.0:
         raise ValueError(f'R must be positive definite, got {R.tolist()}')
-
-    kind = _text(data, 'measurement_model', 'linear')
-    range_keys = ('position_states', 'sensor_position_m', 'min_range_m')
-    if kind == 'linear':
-        for key in range_keys:
-            if key in data:
-                raise ValueError(f"'{key}' applies only to measurement_model range_bearing")
-        if data.get('H') is None:
-            missing = [name for name in measurements if name not in states]
-            if missing:
-                raise ValueError(f"'H' is required: measurement {missing[0]!r} is not a state")
-            H = np.zeros((m, n))
-            for i, name in enumerate(measurements):
-                H[i, states.index(name)] = 1.0
-        else:
-            H = as_matrix('H', data['H'], m, n)
-        model = LinearModel(dynamics.F, dynamics.Q, H, R, B=dynamics.control if p else None,
-                            state_names=states, measurement_names=measurements,
-                            control_names=controls)
-    elif kind == 'range_bearing':
-        if 'H' in data:
-            raise ValueError("'H' does not apply to measurement_model range_bearing")
-        if measurements != ('bearing', 'range'):
-            raise ValueError(
-                f"'measurements' must be [bearing, range] for range_bearing, got "
-                f'{list(measurements)}')
-        position_states = _names(data, 'position_states', required=False) or ('x', 'y')
-        if len(position_states) != 2 or any(s not in states for s in position_states):
-            raise ValueError(f"'position_states' must name two states, got "
-                             f'{list(position_states)}')
-        sensor = as_vector('sensor_position_m', data.get('sensor_position_m', [0.0, 0.0]), 2)
-        min_range = _number('min_range_m', data.get('min_range_m', 1e-6))
-        measurement = RangeBearing(dim_x=n, x_index=states.index(position_states[0]),
-                                   y_index=states.index(position_states[1]),
-                                   sensor_position_m=sensor, min_range_m=min_range)
-        model = ExtendedModel(dynamics.F, dynamics.Q, measurement, R,
-                              B=dynamics.control if p else None, state_names=states,
-                              control_names=controls)
-    else:
-        raise ValueError(f"'measurement_model' must be linear or range_bearing, got {kind!r}")
-
+    model = _measurement_model(data, dynamics, R, states, measurements, controls)
     aliases = _aliases(data.get('measurement_aliases'), measurements)
     for key in ('initial_state', 'initial_covariance'):
         if key not in data:
@@ -574,6 +483,79 @@ def _build(data: Mapping[str, Any], source: str) -> Preset:
                   dynamics=dynamics, model=model, initial_state=x0, initial_covariance=P0,
                   nominal_period_s=period, horizon_s=horizon,
                   measurement_aliases=aliases)
+
+
+def _dynamics(data: Mapping[str, Any], A: np.ndarray, n: int, p: int) -> Tuple[Dynamics, float]:
+    """Return the preset's Dynamics (B, process noise, period) and its period [s]."""
+    if p:
+        if 'B' not in data:
+            raise ValueError("'B' is required when 'controls' are given")
+        B = ControlMatrix(data['B'], n, p, 'B')
+    else:
+        if data.get('B') is not None:
+            raise ValueError("'B' is given but 'controls' is not")
+        B = None
+    noise = data.get('process_noise')
+    if not isinstance(noise, Mapping) or not noise:
+        raise ValueError(f"'process_noise' must be a mapping with one or more of "
+                         f"{', '.join(_NOISE_KEYS)}, got {noise!r}")
+    for key in noise:
+        if key not in _NOISE_KEYS:
+            raise ValueError(f"unknown key 'process_noise.{key}'; use {', '.join(_NOISE_KEYS)}")
+    if 'nominal_period_s' not in data:
+        raise ValueError("'nominal_period_s' is required")
+    period = _number('nominal_period_s', data['nominal_period_s'])
+    if period <= 0.0:
+        raise ValueError(f'nominal_period_s must be > 0, got {period}')
+    per_step = None if noise.get('per_step') is None else _covariance(
+        'process_noise.per_step', noise['per_step'], n)
+    continuous = None if noise.get('continuous') is None else _covariance(
+        'process_noise.continuous', noise['continuous'], n)
+    return Dynamics(A, period_s=period, per_step=per_step, continuous=continuous,
+                    control_std=noise.get('control_std'), B=B), period
+
+
+def _measurement_model(data: Mapping[str, Any], dynamics: Dynamics, R: np.ndarray,
+                       states: Tuple[str, ...], measurements: Tuple[str, ...],
+                       controls: Tuple[str, ...]):
+    """Return the preset's model: linear (H given or selecting states) or range-bearing."""
+    n, m = len(states), len(measurements)
+    B = dynamics.control if controls else None
+    kind = _text(data, 'measurement_model', 'linear')
+    if kind == 'linear':
+        for key in ('position_states', 'sensor_position_m', 'min_range_m'):
+            if key in data:
+                raise ValueError(f"'{key}' applies only to measurement_model range_bearing")
+        if data.get('H') is None:
+            missing = [name for name in measurements if name not in states]
+            if missing:
+                raise ValueError(f"'H' is required: measurement {missing[0]!r} is not a state")
+            H = np.zeros((m, n))
+            for i, name in enumerate(measurements):
+                H[i, states.index(name)] = 1.0
+        else:
+            H = as_matrix('H', data['H'], m, n)
+        return LinearModel(dynamics.F, dynamics.Q, H, R, B=B, state_names=states,
+                           measurement_names=measurements, control_names=controls)
+    if kind != 'range_bearing':
+        raise ValueError(f"'measurement_model' must be linear or range_bearing, got {kind!r}")
+    if 'H' in data:
+        raise ValueError("'H' does not apply to measurement_model range_bearing")
+    if measurements != ('bearing', 'range'):
+        raise ValueError(
+            f"'measurements' must be [bearing, range] for range_bearing, got "
+            f'{list(measurements)}')
+    position_states = _names(data, 'position_states', required=False) or ('x', 'y')
+    if len(position_states) != 2 or any(s not in states for s in position_states):
+        raise ValueError(f"'position_states' must name two states, got "
+                         f'{list(position_states)}')
+    sensor = as_vector('sensor_position_m', data.get('sensor_position_m', [0.0, 0.0]), 2)
+    min_range = _number('min_range_m', data.get('min_range_m', 1e-6))
+    measurement = RangeBearing(dim_x=n, x_index=states.index(position_states[0]),
+                               y_index=states.index(position_states[1]),
+                               sensor_position_m=sensor, min_range_m=min_range)
+    return ExtendedModel(dynamics.F, dynamics.Q, measurement, R, B=B, state_names=states,
+                         control_names=controls)
 
 
 def _aliases(value, measurements: Sequence[str]) -> Dict[str, Tuple[str, ...]]:

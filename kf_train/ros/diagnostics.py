@@ -11,7 +11,7 @@ import functools
 import math
 from typing import List, NamedTuple, Optional, Sequence, Tuple
 
-from kf_train.filters.chi2 import chi2_mean_bounds
+from kf_train.filters import chi2_mean_bounds
 import numpy as np
 
 CONSISTENCY_CONFIDENCE = 0.99
@@ -102,22 +102,22 @@ def filter_status(estimator, counts: NodeCounts, activity: Activity, timeout_s: 
 
 def _count_values(estimator, counts: NodeCounts) -> List[Tuple[str, str]]:
     """Return the counts: received, fused, rejections, resets, controls."""
+    stats = estimator.stats()
     values = [('received', str(counts.received)), ('fused', str(counts.fused)),
-              ('fused_out_of_sequence', str(estimator.out_of_sequence_count)),
+              ('fused_out_of_sequence', str(stats.out_of_sequence)),
               ('rejected', str(counts.rejected))]
     values += [(f'rejected.{reason}', str(count))
-               for reason, count in estimator.rejection_counts.items()]
-    resets = estimator.reset_counts
+               for reason, count in stats.rejections.items()]
+    resets = stats.resets
     values.append(('resets', str(sum(resets.values()))))
     values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
     values.append(('set_state_refused', str(counts.set_state_refused)))
     if estimator.has_control:
         values.append(('controls_received', str(counts.controls_received)))
-        values += [(f'controls.{key}', str(count))
-                   for key, count in estimator.control_counts.items()]
+        values += [(f'controls.{key}', str(count)) for key, count in stats.controls.items()]
         values.append(('controls_rejected', str(counts.controls_rejected)))
         values += [(f'controls_rejected.{reason}', str(count))
-                   for reason, count in estimator.control_rejection_counts.items()]
+                   for reason, count in stats.control_rejections.items()]
     return values
 
 

@@ -110,7 +110,7 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
-from kf_train.estimator.estimator import NS_PER_S, Rejected, TrainEstimator
+from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
 from kf_train.ros import messages
 from kf_train.ros.diagnostics import Activity, filter_status, NodeCounts
 from kf_train.ros.estimator_params import (
@@ -142,7 +142,7 @@ class EstimatorNode(Node):
         super().__init__('estimator', **kwargs)
         try:
             self.config = estimator_config(declare_table(self, PARAMETERS))
-            self.estimator = TrainEstimator(self.config.settings)
+            self.estimator = StreamEstimator(self.config.settings)
         except ParameterError as error:
             raise StartupError(str(error)) from None
         except ValueError as error:

@@ -13,12 +13,12 @@ exactly the node's settings, or the node's error.
 import dataclasses
 from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
-from kf_train.estimator.estimator import (
+from kf_train.estimator import (
     EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS, LIVE_PRESETS,
     MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, PF_PARTICLES_RANGE,
     PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, RESTART_AFTER_STALE_RANGE,
     UKF_ALPHA_RANGE, UKF_BETA_RANGE, UKF_KAPPA_RANGE)
-from kf_train.filters.family import FILTER_KINDS
+from kf_train.filters import FILTER_KINDS
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
 
 DEFAULT_PRESET = 'train'

@@ -36,7 +36,7 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import (
     AccelStamped, PoseWithCovarianceStamped, TwistStamped, Vector3Stamped)
-from kf_train.estimator.estimator import NS_PER_S
+from kf_train.estimator import NS_PER_S
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock

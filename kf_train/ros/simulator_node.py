@@ -47,14 +47,13 @@ sample's stamp on ``/clock`` (rosgraph_msgs/Clock), so that nodes with
 import heapq
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.estimator.estimator import NS_PER_S
+from kf_train.filters import NS_PER_S
 from kf_train.ros import messages
 from kf_train.ros.param_spec import ParameterError
 from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.runner import run, StartupError
 from kf_train.ros.simulator_params import changed_config, PARAMETERS, simulator_config
-from kf_train.sim.faults import FaultInjector
-from kf_train.sim.scenario_streams import CONTROL_NAMES, make_stream
+from kf_train.sim import CONTROL_NAMES, FaultInjector, make_stream
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration

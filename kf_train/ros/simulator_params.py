@@ -9,10 +9,9 @@ Pure (no rclpy, no message package), like :mod:`kf_train.ros.estimator_params`:
 from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
-from kf_train.sim.faults import FaultSettings
-from kf_train.sim.scenario_streams import (
-    CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, ROBOT_SPEED_STD_MPS,
-    SCENARIOS)
+from kf_train.sim import (
+    CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, FaultSettings,
+    ROBOT_SPEED_STD_MPS, SCENARIOS)
 
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 FAULT_PARAMETERS = {

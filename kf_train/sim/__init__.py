@@ -1,1 +1,32 @@
-"""Floor 3, simulation: truth, seed scenarios, streams, faults and baselines."""
+"""
+Floor 3, simulation: the truth, the seeds' scenarios, live streams, faults, baselines.
+
+:class:`TrainSimulation` is seed 000's train; :func:`scenario_for_preset` gives each
+shipped preset its seed scenario (truth plus seeded noise); :func:`make_stream` the
+simulator node's live streams (:data:`SCENARIOS`); :class:`FaultInjector` its seeded
+faults; :mod:`~kf_train.sim.baselines` the seeds' naive estimators. Built on
+:mod:`kf_train.filters` and :mod:`kf_train.presets` only.
+"""
+
+from kf_train.sim import baselines
+from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
+from kf_train.sim.faults import Delivery, FAULT_STREAM, FaultInjector, FaultSettings
+from kf_train.sim.scenario_streams import (
+    CAR_ACCELERATION_MPS2, CarStream, CONTROL_NAMES, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
+    make_stream, ROBOT_SPEED_STD_MPS, RobotStream, SCENARIOS, ScenarioSample, TrainStream)
+from kf_train.sim.scenarios import (
+    car_scenario, cv_position_scenario, cv_position_velocity_scenario, PRESET_SCENARIOS,
+    range_bearing_scenario, robot_position_m, robot_scenario, Scenario, scenario_for_preset,
+    train_scenario)
+from kf_train.sim.simulation import TrainSample, TrainSeries, TrainSimulation
+
+__all__ = [
+    'baselines', 'CAR_ACCELERATION_MPS2', 'car_scenario', 'CarStream', 'CONTROL_NAMES',
+    'cv_position_scenario', 'cv_position_velocity_scenario', 'DEFAULT_INITIAL_STATE',
+    'DEFAULT_NOISE_STD_M', 'Delivery', 'extrapolate', 'FAULT_STREAM', 'FaultInjector',
+    'FaultSettings', 'make_stream', 'PRESET_SCENARIOS', 'range_bearing_scenario',
+    'raw_difference_velocity', 'ROBOT_SPEED_STD_MPS', 'robot_position_m', 'robot_scenario',
+    'RobotStream', 'running_average', 'Scenario', 'scenario_for_preset', 'ScenarioSample',
+    'SCENARIOS', 'train_scenario', 'TrainSample', 'TrainSeries', 'TrainSimulation',
+    'TrainStream',
+]

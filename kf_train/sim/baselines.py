@@ -7,7 +7,7 @@ the raw velocity is ``[0, diff([0, z1, …, zN]) / dt]`` (the first position tak
 moving average that treats the values before the start as zero.
 """
 
-from kf_train.filters.validation import as_duration, as_vector
+from kf_train.filters import as_duration, as_vector
 import numpy as np
 
 

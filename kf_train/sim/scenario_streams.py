@@ -26,8 +26,8 @@ the control of the interval (t_{k-1}, t_k] that ends at it (SEEDS.md), or None.
 
 from typing import NamedTuple, Optional
 
-from kf_train.filters.validation import as_finite_array
-from kf_train.presets.loader import load_preset
+from kf_train.filters import as_finite_array
+from kf_train.presets import load_preset
 from kf_train.sim.scenarios import robot_position_m
 from kf_train.sim.simulation import TrainSimulation
 import numpy as np

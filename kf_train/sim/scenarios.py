@@ -22,7 +22,7 @@ Where a seed's simulation has a quirk that is not physics, the scenario says so:
 
 from typing import NamedTuple, Optional, Tuple
 
-from kf_train.filters.ekf import RangeBearing
+from kf_train.filters import RangeBearing
 from kf_train.sim.simulation import TrainSimulation
 import numpy as np
 
@@ -180,7 +180,7 @@ def range_bearing_scenario(seed: int = 0, duration_s: float = 20.0,
                     ('bearing', 'range'))
 
 
-SCENARIOS = {
+PRESET_SCENARIOS = {
     'train': train_scenario,
     'car': lambda seed=0: car_scenario(seed, exact=False),
     'car-exact': lambda seed=0: car_scenario(seed, exact=True),
@@ -194,6 +194,6 @@ SCENARIOS = {
 
 def scenario_for_preset(name: str, seed: int = 0) -> Scenario:
     """Return the seed scenario made for a shipped preset."""
-    if name not in SCENARIOS:
-        raise ValueError(f"no scenario for {name!r}; choose one of: {', '.join(SCENARIOS)}")
-    return SCENARIOS[name](seed)
+    if name not in PRESET_SCENARIOS:
+        raise ValueError(f"no scenario for {name!r}; choose one of: {', '.join(PRESET_SCENARIOS)}")
+    return PRESET_SCENARIOS[name](seed)

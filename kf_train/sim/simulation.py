@@ -9,7 +9,7 @@ they are drawn one by one (the node) or all at once (offline).
 
 from typing import NamedTuple, Optional
 
-from kf_train.filters.validation import as_finite_array
+from kf_train.filters import as_finite_array
 import numpy as np
 
 

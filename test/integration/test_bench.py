@@ -80,10 +80,10 @@ def test_help_exits_0(capsys):
 def test_percentile_is_nearest_rank():
     """The latency percentiles are nearest-rank: an observed value, never interpolated."""
     values = list(range(1, 101))
-    assert bench._percentile(values, 0.5) == 50
-    assert bench._percentile(values, 0.99) == 99
-    assert bench._percentile([7.0], 0.99) == 7.0
-    assert bench._percentile([], 0.5) != bench._percentile([], 0.5)  # NaN
+    assert bench.percentile(values, 0.5) == 50
+    assert bench.percentile(values, 0.99) == 99
+    assert bench.percentile([7.0], 0.99) == 7.0
+    assert bench.percentile([], 0.5) != bench.percentile([], 0.5)  # NaN
 
 
 def test_nodes_do_not_import_scipy_or_matplotlib():

@@ -6,9 +6,9 @@ import sys
 
 from kf_train import cli
 from kf_train.cli import demo
-from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
+from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
 from kf_train.ros import messages
-from kf_train.sim.simulation import TrainSimulation
+from kf_train.sim import TrainSimulation
 import numpy as np
 import pytest
 from ros_helpers import isolated_env
@@ -101,7 +101,7 @@ class FakeProbe:
     def __init__(self, seed, samples=demo.SAMPLES, start_ns=1_700_000_000 * NS_PER_S):
         """Simulate seed 000 and run the core filter as the nodes would."""
         series = TrainSimulation(seed=seed).generate(samples)
-        estimator = TrainEstimator(EstimatorSettings(initialization='prior'))
+        estimator = StreamEstimator(EstimatorSettings(initialization='prior'))
         self.received = {topic: [] for topic in demo.TOPICS}
         for k in range(samples):
             stamp_ns = start_ns + (k + 1) * NS_PER_S // 10

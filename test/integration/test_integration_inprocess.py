@@ -10,9 +10,10 @@ import os
 import statistics
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.cli.demo import Probe, settings_from_parameters
-from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
+from kf_train.cli.demo import settings_from_parameters
+from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
 from kf_train.ros import messages
+from kf_train.ros.demo_nodes import Probe
 from kf_train.ros.estimator_node import EstimatorNode
 from kf_train.ros.simulator_node import SimulatorNode
 import numpy as np
@@ -245,7 +246,7 @@ def test_first_measurement_mode_converges_far_down_the_track(ros_context, execut
     n, dt = samples, 1.0 / 20.0
     assert est[-1].velocity_variance_m2s2 <= 1.01 * 12.0 / (n * (n * n - 1) * dt * dt)
     # The seed's prior on the same data would be hopelessly off: the scenario matters.
-    prior = TrainEstimator(EstimatorSettings(initialization='prior', nominal_period_s=dt))
+    prior = StreamEstimator(EstimatorSettings(initialization='prior', nominal_period_s=dt))
     for m in measurements(probe):
         step = prior.process(m.stamp_ns, m.position_m, m.variance_m2)
     assert abs(step.x[0] - est[-1].position_m) > 100.0 * math.sqrt(step.P[0, 0])
@@ -260,7 +261,7 @@ def test_estimator_takes_reliable_and_best_effort_publishers(
     publisher = probe.create_publisher(PoseWithCovarianceStamped, 'measurement',
                                        QoSProfile(depth=10, reliability=reliability))
     assert spin_until(executor, lambda: publisher.get_subscription_count() >= 1, TIMEOUT_S)
-    offline = TrainEstimator(settings_from_parameters(declared(estimator)))
+    offline = StreamEstimator(settings_from_parameters(declared(estimator)))
     start_ns = 1_700_000_000 * NS_PER_S
     for k in range(1, 11):
         stamp_ns = start_ns + k * 50_000_000

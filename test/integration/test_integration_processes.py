@@ -18,8 +18,8 @@ import subprocess
 import sys
 import time
 
-from kf_train.cli.demo import fetch_parameters, Probe
 from kf_train.ros import messages
+from kf_train.ros.demo_nodes import fetch_parameters, Probe
 import pytest
 from ros_helpers import isolated_env, spin_until, wait_until
 from test_integration_inprocess import check_covariance, check_pose, k_sigma

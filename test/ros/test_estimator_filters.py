@@ -11,9 +11,9 @@ exit 2.
 
 import statistics
 
-from kf_train.estimator.estimator import (
-    EstimatorSettings, LIVE_PRESETS, Rejected, resolve_preset, TrainEstimator)
-from kf_train.filters.family import FILTER_KINDS
+from kf_train.estimator import (
+    EstimatorSettings, LIVE_PRESETS, Rejected, resolve_preset, StreamEstimator)
+from kf_train.filters import FILTER_KINDS
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 import numpy as np
@@ -66,7 +66,7 @@ def _arrival_order(n: int):
     return order
 
 
-def _feed(estimator: TrainEstimator, stamps, z, controls, order, late_controls=True):
+def _feed(estimator: StreamEstimator, stamps, z, controls, order, late_controls=True):
     """Feed the stream in ``order``; every 5th control comes after its measurement."""
     steps = []
     for i in order:
@@ -92,11 +92,11 @@ def test_ukf_and_ekf_equal_kf_on_every_preset(preset):
     order = _arrival_order(60)
     results = {}
     for kind in ('kf', 'ekf', 'ukf'):
-        estimator = TrainEstimator(EstimatorSettings(preset=preset, filter=kind,
-                                                     history_s=5.0))
+        estimator = StreamEstimator(EstimatorSettings(preset=preset, filter=kind,
+                                                      history_s=5.0))
         steps = _feed(estimator, stamps, z, controls, order)
-        results[kind] = (steps, estimator.state, estimator.out_of_sequence_count,
-                         estimator.control_counts)
+        results[kind] = (steps, estimator.state, estimator.stats().out_of_sequence,
+                         estimator.stats().controls)
     kf_steps, (x, P), oos, control_counts = results['kf']
     assert oos > 0
     for kind in ('ekf', 'ukf'):
@@ -119,7 +119,7 @@ def test_pf_runs_every_preset_reproducibly(preset):
     q = PF_Q if resolve_preset(preset).state_names == ('position', 'velocity') else 0.0
     runs = []
     for _ in range(2):
-        estimator = TrainEstimator(EstimatorSettings(
+        estimator = StreamEstimator(EstimatorSettings(
             preset=preset, filter='pf', pf_particles=500, pf_seed=7, history_s=3.0,
             process_noise_density=q))
         steps = _feed(estimator, stamps, z, controls, order)
@@ -136,12 +136,12 @@ def test_pf_out_of_sequence_replay_equals_in_order_bit_for_bit():
     stamps, z, _, _ = _stream('train', 80, 3)
     states = []
     for order in (list(range(80)), _arrival_order(80)):
-        estimator = TrainEstimator(EstimatorSettings(
+        estimator = StreamEstimator(EstimatorSettings(
             filter='pf', pf_particles=300, pf_seed=11, history_s=1.0,
             process_noise_density=PF_Q))
         _feed(estimator, stamps, z, None, order)
         states.append(estimator.state)
-    assert estimator.out_of_sequence_count > 0
+    assert estimator.stats().out_of_sequence > 0
     assert np.array_equal(states[0][0], states[1][0])
     assert np.array_equal(states[0][1], states[1][1])
 
@@ -149,7 +149,7 @@ def test_pf_out_of_sequence_replay_equals_in_order_bit_for_bit():
 def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
     """An outlier is gated on the particle filter's NIS and leaves its state as it was."""
     stamps, z, _, _ = _stream('train', 30, 4)
-    estimator = TrainEstimator(EstimatorSettings(
+    estimator = StreamEstimator(EstimatorSettings(
         filter='pf', pf_particles=1000, history_s=1.0, gate_probability=0.999,
         process_noise_density=PF_Q))
     _feed(estimator, stamps, z[:20], None, range(20))
@@ -161,7 +161,7 @@ def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
     after = estimator.state
     assert np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])
     # The next good measurement continues exactly as if the outlier never came.
-    twin = TrainEstimator(estimator.settings)
+    twin = StreamEstimator(estimator.settings)
     _feed(twin, stamps[:20], z[:20], None, range(20))
     a = estimator.process(stamps[21], z[21, 0], 1.0)
     b = twin.process(stamps[21], z[21, 0], 1.0)
@@ -177,14 +177,14 @@ def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
 def test_invalid_filter_settings_are_rejected_by_the_core(name, value, words):
     """The core names the bad setting (the node's descriptors check the ranges first)."""
     with pytest.raises(ValueError) as caught:
-        TrainEstimator(EstimatorSettings(**{name: value}))
+        StreamEstimator(EstimatorSettings(**{name: value}))
     for word in words:
         assert word in str(caught.value)
 
 
 def test_the_filter_cannot_change_on_a_running_estimator():
     """The filter kind and tuning are fixed for the estimator's life, like the preset."""
-    estimator = TrainEstimator(EstimatorSettings(filter='ukf'))
+    estimator = StreamEstimator(EstimatorSettings(filter='ukf'))
     for change in ({'filter': 'kf'}, {'ukf_alpha': 0.5}, {'pf_seed': 3}):
         with pytest.raises(ValueError, match=next(iter(change))):
             estimator.reconfigure(EstimatorSettings(**{'filter': 'ukf', **change}))
@@ -201,7 +201,7 @@ def _node_run(ros_context, kind: str, stamps, z, order):
         for i in order:
             node._on_measurement(messages.to_measurement_msg(stamps[i], 'odom', z[i, 0], 1.0))
         assert node.get_parameter('filter').value == kind
-        assert node.fused == len(order) and node.estimator.out_of_sequence_count > 0
+        assert node.fused == len(order) and node.estimator.stats().out_of_sequence > 0
         node._on_diagnostics_timer()
         diagnostics = {v.key: v.value for v in node._last_diagnostics.status[0].values}
         assert diagnostics['filter'] == kind

@@ -11,9 +11,9 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
-from kf_train.estimator.estimator import (
+from kf_train.estimator import (
     EstimateStep, EstimatorSettings, NS_PER_S, Rejected, REJECTION_REASONS, RESET_REASONS,
-    TrainEstimator)
+    StreamEstimator)
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
@@ -131,7 +131,7 @@ def test_every_bad_input_class_is_counted_and_never_published(ros_context, execu
     h = Harness(ros_context, executor, expected_frame_id='odom', gate_probability=0.999,
                 process_noise_density=0.1)
     base = _now_ns() - 60 * NS_PER_S
-    twin = TrainEstimator(h.node.estimator.settings)
+    twin = StreamEstimator(h.node.estimator.settings)
     for k in range(1, 21):
         h.send(*_good(k, base))
         twin.process(*_good(k, base), 1.0)
@@ -155,7 +155,7 @@ def test_every_bad_input_class_is_counted_and_never_published(ros_context, execu
         fused = h.node.fused
         h.send(**{'variance_m2': 1.0, 'frame_id': 'odom', **kwargs})
         expected[reason] += 1
-        assert h.node.estimator.rejection_counts == expected, reason
+        assert h.node.estimator.stats().rejections == expected, reason
         assert h.node.fused == fused
         after = h.node.estimator.state
         assert after[0].tobytes() == before[0].tobytes(), reason
@@ -187,7 +187,7 @@ def test_a_non_finite_state_is_never_published_and_resets(ros_context, executor)
 
     h.node.estimator.process = broken
     h.send(*_good(2, base))
-    assert h.node.estimator.reset_counts['non_finite'] == 1
+    assert h.node.estimator.stats().resets['non_finite'] == 1
     assert not h.node.estimator.initialized
     assert len(h.outputs['estimate']) == 1 and h.node.fused == 1
     h.node.estimator.process = real
@@ -200,14 +200,14 @@ def test_innovation_topic_layout(ros_context, executor):
     """The innovation topic carries x = y, y = S, z = NIS, stamped with the measurement."""
     h = Harness(ros_context, executor, process_noise_density=0.2)
     base = _now_ns() - 60 * NS_PER_S
-    twin = TrainEstimator(h.node.estimator.settings)
+    twin = StreamEstimator(h.node.estimator.settings)
     results = []
     for k in (1, 2, 3, 5, 4):  # 4 comes late: its own stamp, not the newest
         h.send(*_good(k, base), variance_m2=0.5)
         step = twin.process(*_good(k, base), 0.5)
         if step.update is not None:
             results.append((step.measurement_stamp_ns, step.update))
-    assert twin.out_of_sequence_count == 1
+    assert twin.stats().out_of_sequence == 1
     assert len(h.outputs['innovation']) == len(results) == 4
     for msg, (stamp, update) in zip(h.outputs['innovation'], results):
         assert messages.stamp_to_ns(msg.header.stamp) == stamp
@@ -285,18 +285,18 @@ def test_reset_service_and_set_state(ros_context, executor):
     assert spin_until(executor, future.done, 5.0)
     assert future.result().success and 'reset' in future.result().message
     assert not h.node.estimator.initialized
-    assert h.node.estimator.reset_counts['manual'] == 1
+    assert h.node.estimator.stats().resets['manual'] == 1
     h.send(*_good(2, base))  # older than before the reset: it initialises the filter
     assert h.node.estimator.last_stamp_ns == _good(2, base)[0]
 
     state = messages.to_odometry_msg(_good(3, base)[0], 'odom', 'base_link', 3.0, 10.0,
                                      0.25, 0.5)
     h.set_state_pub.publish(state)
-    assert spin_until(executor, lambda: h.node.estimator.reset_counts['set_state'] == 1, 5.0)
+    assert spin_until(executor, lambda: h.node.estimator.stats().resets['set_state'] == 1, 5.0)
     x, P = h.node.estimator.state
     assert np.array_equal(x, [3.0, 10.0]) and np.array_equal(P, np.diag([0.25, 0.5]))
     assert h.node.estimator.last_stamp_ns == _good(3, base)[0]
-    expected = TrainEstimator(h.node.estimator.settings)
+    expected = StreamEstimator(h.node.estimator.settings)
     expected.set_state(_good(3, base)[0], [3.0, 10.0], np.diag([0.25, 0.5]))
     h.send(*_good(4, base))
     assert np.array_equal(h.node.estimator.state[0], expected.process(*_good(4, base), 1.0).x)
@@ -310,11 +310,11 @@ def test_reset_service_and_set_state(ros_context, executor):
         refused = h.node.set_state_refused
         h.set_state_pub.publish(bad)
         assert spin_until(executor, lambda: h.node.set_state_refused == refused + 1, 5.0)
-    assert h.node.estimator.reset_counts['set_state'] == 1
+    assert h.node.estimator.stats().resets['set_state'] == 1
     assert h.node.estimator.last_stamp_ns == _good(4, base)[0]
     # A zero stamp means 'at the newest fused stamp'.
     h.set_state_pub.publish(messages.to_odometry_msg(0, '', 'base_link', 4.0, 10.0, 1.0, 1.0))
-    assert spin_until(executor, lambda: h.node.estimator.reset_counts['set_state'] == 2, 5.0)
+    assert spin_until(executor, lambda: h.node.estimator.stats().resets['set_state'] == 2, 5.0)
     assert h.node.estimator.last_stamp_ns == _good(4, base)[0]
 
 
@@ -377,13 +377,13 @@ def test_clock_jump_resets_the_filter(ros_context, executor):
     h.send(101 * NS_PER_S, 10.0)
     set_clock(50)  # a bag loop
     h.send(50 * NS_PER_S, 10.0)
-    assert h.node.estimator.reset_counts['clock_jump'] == 1
+    assert h.node.estimator.stats().resets['clock_jump'] == 1
     assert h.node.estimator.last_stamp_ns == 50 * NS_PER_S  # it started again from there
     assert h.set_parameters(reset_on_clock_jump=False)[0].successful
     set_clock(20)
     h.send(20 * NS_PER_S + 1, 10.0)
-    assert h.node.estimator.reset_counts['clock_jump'] == 1
-    assert h.node.estimator.rejection_counts['stale_stamp'] == 1
+    assert h.node.estimator.stats().resets['clock_jump'] == 1
+    assert h.node.estimator.stats().rejections['stale_stamp'] == 1
 
 
 def test_sim_time_before_the_first_clock_skips_the_future_check(ros_context, executor):

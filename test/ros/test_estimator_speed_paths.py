@@ -1,7 +1,7 @@
 """
 The estimator's fast paths equal the plain ones.
 
-* The train's closed-form KF inside TrainEstimator (``_FastTrainModel``) against the
+* The train's closed-form KF inside StreamEstimator (``_FastTrainModel``) against the
   generic LinearModel path, on one stream with out-of-sequence measurements, gated
   outliers, a lock-out reset, duplicates, stale stamps, set_state and process noise:
   every step, every rejection and every counter agree, the numbers to 1e-9.
@@ -12,7 +12,7 @@ The estimator's fast paths equal the plain ones.
 
 import math
 
-from kf_train.estimator.estimator import EstimatorSettings, Rejected, TrainEstimator
+from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 import numpy as np
@@ -26,7 +26,7 @@ EPOCH_NS = 1_700_000_000_000_000_000
 PERIOD_NS = 100_000_000
 
 
-class _GenericEstimator(TrainEstimator):
+class _GenericEstimator(StreamEstimator):
     """The estimator with the train's generic (numpy matrix) model."""
 
     fast_path = False
@@ -70,8 +70,8 @@ def _run(cls, settings: EstimatorSettings, events):
         except Rejected as rejection:
             outcomes.append((rejection.reason, rejection.reset,
                              None if rejection.update is None else rejection.update.nis))
-    counters = (estimator.rejection_counts, estimator.reset_counts, estimator.fused_count,
-                estimator.out_of_sequence_count)
+    counters = (estimator.stats().rejections, estimator.stats().resets, estimator.stats().fused,
+                estimator.stats().out_of_sequence)
     return estimator, outcomes, counters
 
 
@@ -90,7 +90,7 @@ def test_fast_train_path_equals_the_generic_path(q, initialization):
                                  max_consecutive_outliers=3, process_noise_density=q,
                                  initialization=initialization)
     events = _events(200, 1)
-    fast, fast_out, fast_counts = _run(TrainEstimator, settings, events)
+    fast, fast_out, fast_counts = _run(StreamEstimator, settings, events)
     generic, generic_out, generic_counts = _run(_GenericEstimator, settings, events)
     assert type(fast.model).__name__ == '_FastTrainModel'
     assert type(generic.model).__name__ != '_FastTrainModel'
@@ -124,7 +124,7 @@ def test_fast_train_path_equals_the_generic_path(q, initialization):
 
 def test_fast_train_path_rejects_what_the_generic_path_rejects():
     """Overflow and a singular S: a numerical rejection on both, the state unchanged."""
-    for cls in (TrainEstimator, _GenericEstimator):
+    for cls in (StreamEstimator, _GenericEstimator):
         estimator = cls(EstimatorSettings(history_s=1.0))
         estimator.set_state(EPOCH_NS, [0.0, 1e300], [[0.0, 0.0], [0.0, 0.0]])
         before = estimator.state

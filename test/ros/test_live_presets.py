@@ -11,20 +11,19 @@ import dataclasses
 import statistics
 
 from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped, TwistStamped
-from kf_train.batch.series import run_series
-from kf_train.estimator import estimator as estimator_module
-from kf_train.estimator.estimator import (
+from kf_train.batch import run_series
+from kf_train.estimator import (
     CONTROL_REJECTION_REASONS, EstimatorSettings, NS_PER_S, preset_defaults, Rejected,
-    resolve_preset, TrainEstimator)
-from kf_train.filters.chi2 import chi2_mean_bounds, chi2_quantile
-from kf_train.presets.loader import load_preset
+    resolve_preset, StreamEstimator)
+from kf_train.estimator import controls as controls_module
+from kf_train.filters import chi2_mean_bounds, chi2_quantile
+from kf_train.presets import load_preset
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import DEFAULTS, EstimatorNode
 from kf_train.ros.runner import StartupError
 from kf_train.ros.simulator_node import SimulatorNode
-from kf_train.sim.scenario_streams import make_stream, SCENARIOS
-from kf_train.sim.scenarios import (
-    car_scenario, robot_position_m, scenario_for_preset, train_scenario)
+from kf_train.sim import (
+    car_scenario, make_stream, robot_position_m, scenario_for_preset, SCENARIOS, train_scenario)
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
@@ -175,7 +174,7 @@ def _run(preset, sc, order='control_first', settings=PRIOR, seed=0):
     sends them); ``control_late``: just after it; ``shuffled``: measurements and
     controls each up to ~6 rows late, in a random interleaving.
     """
-    estimator = TrainEstimator(dataclasses.replace(settings, preset=preset))
+    estimator = StreamEstimator(dataclasses.replace(settings, preset=preset))
     stamps = _stamps(sc.t_s)
     events = []
     for k, stamp in enumerate(stamps):
@@ -206,7 +205,7 @@ def _snapshot(estimator):
     x, P = (None, None) if state is None else (state[0].tobytes(), state[1].tobytes())
     history = tuple((e.stamp_ns, e.x.tobytes(), e.P.tobytes(), e.kind)
                     for e in estimator._history)
-    return x, P, estimator.last_stamp_ns, history, estimator.control_count
+    return x, P, estimator.last_stamp_ns, history, estimator.stats().control_count
 
 
 # -- core: prior mode against the seeds ----------------------------------------------------
@@ -224,14 +223,14 @@ def test_prior_mode_with_the_node_defaults_is_seed_000_for_any_seed():
     for seed in range(20):
         sc = train_scenario(seed)
         expected_x, expected_P = seed_000_loop(sc.z[:, 0])
-        estimator = TrainEstimator(PRIOR)
+        estimator = StreamEstimator(PRIOR)
         nis = []
         for k, stamp in enumerate(_stamps(sc.t_s)):
             step = estimator.process(stamp, sc.z[k, 0], 1.0)
             np.testing.assert_allclose(step.x, expected_x[k], rtol=1e-9, atol=1e-9)
             np.testing.assert_allclose(step.P, expected_P[k], rtol=1e-9, atol=1e-12)
             nis.append(step.update.nis)
-        assert sum(estimator.rejection_counts.values()) == 0
+        assert sum(estimator.stats().rejections.values()) == 0
         largest_nis[seed] = max(nis)
     assert largest_nis[3] > chi2_quantile(0.9999, 1)
 
@@ -249,7 +248,7 @@ def test_prior_mode_reproduces_each_seed_loop(preset):
         P = np.array([steps[s].P for s in stamps])
         np.testing.assert_allclose(x, expected_x, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(P, expected_P, rtol=1e-9, atol=1e-12)
-        assert sum(estimator.rejection_counts.values()) == 0
+        assert sum(estimator.stats().rejections.values()) == 0
 
 
 @pytest.mark.parametrize('preset', ['car', 'car-exact', 'robot', 'robot-exact'])
@@ -269,7 +268,7 @@ def test_arrival_order_of_controls_and_measurements_does_not_matter(preset, orde
     x, P = estimator.state
     np.testing.assert_allclose(x, expected.x[-1], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(P, expected.P[-1], rtol=1e-9, atol=1e-12)
-    counts = estimator.control_counts
+    counts = estimator.stats().controls
     assert counts['accepted'] == len(sc.t_s)
     if order == 'control_first':
         assert counts['late'] == counts['provisional'] == 0
@@ -278,16 +277,16 @@ def test_arrival_order_of_controls_and_measurements_does_not_matter(preset, orde
     else:
         assert counts['late'] > 0 and counts['provisional'] > 0
     if order == 'shuffled':
-        assert estimator.out_of_sequence_count > 0
-    assert sum(estimator.rejection_counts.values()) == 0
-    assert sum(estimator.control_rejection_counts.values()) == 0
+        assert estimator.stats().out_of_sequence > 0
+    assert sum(estimator.stats().rejections.values()) == 0
+    assert sum(estimator.stats().control_rejections.values()) == 0
 
 
 def test_a_missing_control_is_held_then_corrected():
     """Without its control a measurement uses the last one (provisional); the control fixes it."""
     sc = scenario_for_preset('robot', 2)
     stamps = _stamps(sc.t_s)
-    estimator = TrainEstimator(dataclasses.replace(PRIOR, preset='robot'))
+    estimator = StreamEstimator(dataclasses.replace(PRIOR, preset='robot'))
     for k in range(5):
         estimator.add_control(stamps[k], sc.u[k])
         _measure(estimator, stamps[k], sc.z[k], 'robot')
@@ -297,13 +296,13 @@ def test_a_missing_control_is_held_then_corrected():
     x_prior, P_prior = x4[0] + 0.1 * sc.u[4, 0], P4[0, 0] + 0.04
     gain = P_prior / (P_prior + 0.0009)
     assert held.x[0] == pytest.approx(x_prior + gain * (sc.z[5, 0] - x_prior), rel=1e-12)
-    assert estimator.control_counts['provisional'] == 1
+    assert estimator.stats().controls['provisional'] == 1
     corrected = estimator.add_control(stamps[5], sc.u[5])
     expected = run_series(load_preset('robot'), sc.t_s[:6], sc.z[:6], sc.u[:6])
     np.testing.assert_allclose(corrected.x, expected.x[-1], rtol=1e-12, atol=1e-12)
     assert corrected.stamp_ns == stamps[5] and corrected.control_stamp_ns == stamps[5]
     assert corrected.update is None and corrected.replayed == 1
-    assert estimator.control_counts == {'accepted': 6, 'late': 1, 'provisional': 1}
+    assert estimator.stats().controls == {'accepted': 6, 'late': 1, 'provisional': 1}
     # The same value again changes nothing.
     assert estimator.add_control(stamps[5], sc.u[5]) is None
 
@@ -312,7 +311,7 @@ def test_a_gap_is_predicted_interval_by_interval():
     """A lost measurement: the prediction over the gap applies each interval's own control."""
     sc = scenario_for_preset('robot', 4)
     stamps = _stamps(sc.t_s)
-    estimator = TrainEstimator(dataclasses.replace(PRIOR, preset='robot'))
+    estimator = StreamEstimator(dataclasses.replace(PRIOR, preset='robot'))
     for k in range(4):
         estimator.add_control(stamps[k], sc.u[k])
         _measure(estimator, stamps[k], sc.z[k], 'robot')
@@ -326,7 +325,7 @@ def test_a_gap_is_predicted_interval_by_interval():
     gain = P_prior / (P_prior + 0.0009)
     assert step.x[0] == pytest.approx(x_prior + gain * (sc.z[5, 0] - x_prior), rel=1e-12)
     assert step.P[0, 0] == pytest.approx((1.0 - gain) * P_prior, rel=1e-12)
-    assert estimator.control_counts['provisional'] == 0
+    assert estimator.stats().controls['provisional'] == 0
 
 
 def test_bad_controls_are_rejected_and_change_nothing():
@@ -346,7 +345,7 @@ def test_bad_controls_are_rejected_and_change_nothing():
             estimator.add_control(stamp, u, now_ns=now)
         assert raised.value.reason == reason
         expected[reason] += 1
-        assert estimator.control_rejection_counts == expected
+        assert estimator.stats().control_rejections == expected
         assert _snapshot(estimator) == before
     for bad, words in (([1.0, 2.0], 'u must have 1'), ('fast', 'u must be numeric')):
         with pytest.raises(ValueError, match=words):
@@ -355,7 +354,7 @@ def test_bad_controls_are_rejected_and_change_nothing():
         estimator.add_control(1.5, [1.0])
     assert _snapshot(estimator) == before
     # Without a history to replay from, a control for a fused interval is stale.
-    strict = TrainEstimator(dataclasses.replace(PRIOR, preset='car', history_s=0.0))
+    strict = StreamEstimator(dataclasses.replace(PRIOR, preset='car', history_s=0.0))
     _measure(strict, stamps[0], sc.z[0], 'car')
     with pytest.raises(Rejected, match='history_s = 0') as raised:
         strict.add_control(stamps[0], [1.0])
@@ -364,23 +363,23 @@ def test_bad_controls_are_rejected_and_change_nothing():
 
 def test_controls_are_forgotten_when_no_longer_needed(monkeypatch):
     """The control buffer stays bounded: by the history, and before the first measurement."""
-    monkeypatch.setattr(estimator_module, 'MAX_CONTROLS', 50)
+    monkeypatch.setattr(controls_module, 'MAX_CONTROLS', 50)
     period = NS_PER_S // 10
-    idle = TrainEstimator(dataclasses.replace(PRIOR, preset='robot'))
+    idle = StreamEstimator(dataclasses.replace(PRIOR, preset='robot'))
     for k in range(1, 201):
         idle.add_control(EPOCH_NS + k * period, [0.5 + k])
-    assert idle.control_count == 50  # the newest 50
+    assert idle.stats().control_count == 50  # the newest 50
     step = idle.process(EPOCH_NS + 200 * period, 0.0, 0.0009)
     # The prior (0, P = 0) moves by dt·u = 0.1·200.5 over the interval ending there.
     assert step.x[0] == pytest.approx(20.05 * (1.0 - 0.04 / 0.0409), rel=1e-12)
     # Kept now: the controls inside the prior's interval, plus the one held before.
-    assert idle.control_count <= 3
+    assert idle.stats().control_count <= 3
     sc = scenario_for_preset('robot', 3)
     estimator, _ = _run('robot', sc)
-    assert estimator.control_count <= estimator.history_length + 2
+    assert estimator.stats().control_count <= estimator.stats().history_length + 2
     estimator.reset('clock_jump')
-    assert estimator.control_count == 0  # stamped on the old time line
-    assert estimator.reset_counts['clock_jump'] == 1
+    assert estimator.stats().control_count == 0  # stamped on the old time line
+    assert estimator.stats().resets['clock_jump'] == 1
 
 
 def test_preset_settings_are_validated(tmp_path):
@@ -397,19 +396,19 @@ def test_preset_settings_are_validated(tmp_path):
             (EstimatorSettings(preset='car', measurement_velocity_variance=-1.0),
              'measurement_velocity_variance must')]:
         with pytest.raises(ValueError, match=words):
-            TrainEstimator(settings)
-    estimator = TrainEstimator(EstimatorSettings(preset='car'))
+            StreamEstimator(settings)
+    estimator = StreamEstimator(EstimatorSettings(preset='car'))
     with pytest.raises(ValueError, match='preset cannot change'):
         estimator.reconfigure(EstimatorSettings(preset='robot'))
     assert estimator.preset.name == 'car'
     with pytest.raises(ValueError, match='has no control input'):
-        TrainEstimator().add_control(EPOCH_NS, [1.0])
+        StreamEstimator().add_control(EPOCH_NS, [1.0])
     with pytest.raises(ValueError, match='must be given both'):
-        TrainEstimator(EstimatorSettings(preset='cv-position-velocity')).process(
+        StreamEstimator(EstimatorSettings(preset='cv-position-velocity')).process(
             EPOCH_NS, 1.0, 1.0)
     with pytest.raises(ValueError, match='must be given neither'):
-        TrainEstimator().process(EPOCH_NS, 1.0, 1.0, velocity_mps=1.0,
-                                 velocity_variance_m2s2=1.0)
+        StreamEstimator().process(EPOCH_NS, 1.0, 1.0, velocity_mps=1.0,
+                                  velocity_variance_m2s2=1.0)
     resolved = EstimatorSettings(preset='cv-position', horizon_s=3.0).resolved()
     assert (resolved.nominal_period_s, resolved.horizon_s) == (1.0, 3.0)
     assert resolved.initial_state == (110.0, 110.0)
@@ -440,7 +439,7 @@ def test_first_measurement_mode_initialises_every_preset_from_its_measurement():
              'car': ([0.25], None, [0.25, 0.0], [0.0009, 100.0 ** 2]),
              'cv-position-velocity': ([0.25], (3.0, 9.0), [0.25, 3.0], [0.0009, 9.0])}
     for preset, (z, velocity, x, variances) in cases.items():
-        estimator = TrainEstimator(EstimatorSettings(preset=preset))
+        estimator = StreamEstimator(EstimatorSettings(preset=preset))
         kwargs = {} if velocity is None else {'velocity_mps': velocity[0],
                                               'velocity_variance_m2s2': velocity[1]}
         step = estimator.process(EPOCH_NS, z[0], 0.0009, **kwargs)
@@ -570,7 +569,7 @@ def test_simulator_scenario_and_estimator_preset_over_dds(ros_context, executor,
         assert sorted(controls) == stamps
         assert {c.frame_id for c in controls.values()} == {'base_link'}
         u = np.array([[controls[s].value] for s in stamps])
-        assert estimator.estimator.control_counts['accepted'] == samples
+        assert estimator.estimator.stats().controls['accepted'] == samples
     # The simulator's numbers are its scenario stream's, reproducibly from the seed.
     stream = make_stream(scenario, rate_hz, 4)
     rows = [stream.next_sample() for _ in range(samples)]
@@ -592,7 +591,7 @@ def test_simulator_scenario_and_estimator_preset_over_dds(ros_context, executor,
         close = (np.allclose(got, expected.x[k], rtol=1e-9, atol=1e-9)
                  and np.allclose(variances, np.diag(expected.P[k]), rtol=1e-9, atol=1e-12))
         mismatches += not close
-    provisional = (estimator.estimator.control_counts['provisional']
+    provisional = (estimator.estimator.stats().controls['provisional']
                    if control_type else 0)
     assert mismatches <= provisional
     np.testing.assert_allclose(estimator.estimator.state[0], expected.x[-1], rtol=1e-9,
@@ -705,7 +704,7 @@ def test_late_controls_over_dds_correct_the_estimate(ros_context, executor):
         feeder.send(messages.to_measurement_msg(stamp, 'odom', sc.z[k, 0], 0.0009))
         feeder.send(messages.to_twist_msg(stamp, 'base_link', sc.u[k, 0]), control=True)
     assert estimator.corrections == n and estimator.fused == n
-    assert estimator.estimator.control_counts == {'accepted': n, 'late': n, 'provisional': n}
+    assert estimator.estimator.stats().controls == {'accepted': n, 'late': n, 'provisional': n}
     expected = run_series(load_preset('robot'), sc.t_s[:n], sc.z[:n], sc.u[:n])
     estimates = _last_by_stamp(feeder.estimates)
     for k, stamp in enumerate(stamps):
@@ -766,7 +765,7 @@ def test_fault_injection_with_every_control_scenario(ros_context, executor, scen
         and estimator.controls_received == samples), 10.0)
     faults = simulator.faults
     assert faults.dropped > 0 and faults.outliers > 0 and faults.reordered > 0
-    offline = TrainEstimator(estimator.estimator.settings)
+    offline = StreamEstimator(estimator.estimator.settings)
     read = messages.CONTROL_MESSAGES[load_preset(scenario).control_names[0]][2]
     for control in map(read, recorder.received['control']):
         offline.add_control(control.stamp_ns, [control.value])
@@ -777,8 +776,8 @@ def test_fault_injection_with_every_control_scenario(ros_context, executor, scen
         except Rejected as rejection:
             assert rejection.reason == 'outlier'
             rejected += 1
-    assert rejected == estimator.estimator.rejection_counts['outlier'] == estimator.rejected
-    assert rejected > 0 and estimator.estimator.out_of_sequence_count > 0
+    assert rejected == estimator.estimator.stats().rejections['outlier'] == estimator.rejected
+    assert rejected > 0 and estimator.estimator.stats().out_of_sequence > 0
     np.testing.assert_allclose(estimator.estimator.state[0], offline.state[0], rtol=1e-9,
                                atol=1e-9)
     np.testing.assert_allclose(estimator.estimator.state[1], offline.state[1], rtol=1e-9,

@@ -6,11 +6,11 @@ own fault tests are in test/unit/test_faults.py.
 """
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.estimator.estimator import Rejected, TrainEstimator
+from kf_train.estimator import Rejected, StreamEstimator
 from kf_train.ros.estimator_node import EstimatorNode
 from kf_train.ros.messages import from_measurement_msg, stamp_to_ns
 from kf_train.ros.simulator_node import SimulatorNode
-from kf_train.sim.faults import FaultSettings
+from kf_train.sim import FaultSettings
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
@@ -68,9 +68,9 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
     assert faults.dropped > 0 and faults.outliers > 0 and faults.reordered > 0
     assert simulator.delivered == 150 - faults.dropped
     measurements = [from_measurement_msg(m) for m in delivered]
-    outliers = estimator.estimator.rejection_counts['outlier']
+    outliers = estimator.estimator.stats().rejections['outlier']
     assert outliers > 0 and outliers == estimator.rejected
-    offline = TrainEstimator(estimator.estimator.settings)
+    offline = StreamEstimator(estimator.estimator.settings)
     rejected = set()
     for m in sorted(measurements, key=lambda m: m.stamp_ns):
         try:
@@ -84,7 +84,7 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
         if m.stamp_ns not in rejected:
             late += m.stamp_ns < newest
             newest = max(newest, m.stamp_ns)
-    assert estimator.estimator.out_of_sequence_count == late > 0
+    assert estimator.estimator.stats().out_of_sequence == late > 0
     np.testing.assert_allclose(estimator.estimator.state[0], offline.state[0], rtol=1e-9,
                                atol=1e-9)
     assert ros_helpers.spin_until(executor, lambda: len(estimates) == estimator.fused, 5.0)
@@ -116,7 +116,7 @@ def test_a_simulated_clock_jump_resets_the_estimator(ros_context, executor):
         {'use_sim_time': True})
     assert ros_helpers.spin_until(executor, lambda: simulator.done.done(), 30.0)
     assert ros_helpers.spin_until(executor, lambda: estimator.received == 100, 5.0)
-    resets = estimator.estimator.reset_counts
+    resets = estimator.estimator.stats().resets
     assert resets['clock_jump'] == 1, resets
     assert resets['stream_restart'] == 0
     # It fused the stream after the jump: everything but at most a sample in flight.

@@ -3,13 +3,12 @@
 import math
 
 from kf_train import cli
-from kf_train.batch.series import run_series
+from kf_train.batch import run_series
 from kf_train.cli.compare import (
     anees_bounds, comparison_figure, derived_seed, main, nees, run_comparison)
-from kf_train.filters.family import FilterOptions
-from kf_train.filters.particle import psd_factor
-from kf_train.presets.loader import load_preset
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.filters import FilterOptions, psd_factor
+from kf_train.presets import load_preset
+from kf_train.sim import scenario_for_preset
 import numpy as np
 import pytest
 from scipy import stats

@@ -19,9 +19,8 @@ lies outside its bounds for 1% of seeds by construction.
 
 import dataclasses
 
-from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, TrainEstimator
-from kf_train.filters.chi2 import chi2_mean_bounds
-from kf_train.filters.models import constant_velocity_F, WhiteNoiseAcceleration
+from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
+from kf_train.filters import chi2_mean_bounds, constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 
@@ -47,7 +46,7 @@ def _monte_carlo(settings):
         rng = np.random.default_rng([SEED, run])
         # The prior holds one period before the first stamp; the truth starts there.
         x = np.array(PRIOR_MEAN) + np.sqrt(PRIOR_VARIANCES) * rng.standard_normal(2)
-        estimator = TrainEstimator(settings)
+        estimator = StreamEstimator(settings)
         for k in range(1, STEPS + 1):
             x = F @ x + Q_chol @ rng.standard_normal(2)   # x_k = F x_k-1 + w, w ~ N(0, Q)
             z = x[0] + np.sqrt(R_M2) * rng.standard_normal()  # z = H x + v, v ~ N(0, R)

@@ -1,8 +1,8 @@
 """Tests of kf_train.estimator.estimator: the stamped train estimator and its settings."""
 
-from kf_train.estimator.estimator import (
-    covariance_from_list, EstimatorSettings, NS_PER_S, seconds_to_ns, TrainEstimator)
-from kf_train.filters.models import constant_velocity_F, WhiteNoiseAcceleration
+from kf_train.estimator import (
+    covariance_from_list, EstimatorSettings, NS_PER_S, seconds_to_ns, StreamEstimator)
+from kf_train.filters import constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 
@@ -50,7 +50,7 @@ def test_prior_mode_is_seed_000():
     """Prior mode fed stamps k·0.1 s reproduces the seed's MATLAB loop."""
     z = _train(100)
     expected_x, expected_P = _seed_000_matlab(z)
-    estimator = TrainEstimator(EstimatorSettings(initialization='prior'))
+    estimator = StreamEstimator(EstimatorSettings(initialization='prior'))
     for k in range(100):
         step = estimator.process((k + 1) * PERIOD_NS, z[k], 1.0)
         np.testing.assert_allclose(step.x, expected_x[k], rtol=1e-9, atol=1e-9)
@@ -62,12 +62,12 @@ def test_prior_mode_is_seed_000():
 def test_first_measurement_mode_initialises_from_the_measurement():
     """The first output is [z1, v0] with variances [R, first_velocity_std²]."""
     settings = EstimatorSettings(initial_state=(-7.0, 3.0), first_velocity_std_mps=20.0)
-    step = TrainEstimator(settings).process(5 * NS_PER_S, 123.25, 0.5)
+    step = StreamEstimator(settings).process(5 * NS_PER_S, 123.25, 0.5)
     assert step.update is None
     assert np.array_equal(step.x, [123.25, 3.0])
     assert np.array_equal(step.P, np.diag([0.5, 400.0]))
     assert step.stamp_ns == 5 * NS_PER_S
-    assert TrainEstimator().settings.initialization == 'first_measurement'
+    assert StreamEstimator().settings.initialization == 'first_measurement'
 
 
 def test_first_measurement_mode_joins_a_moving_train():
@@ -81,14 +81,14 @@ def test_first_measurement_mode_joins_a_moving_train():
     z = _train(200, start_s=599.9)  # first sample at t = 600 s, x = 6000 m
     stamps = [600 * NS_PER_S + k * PERIOD_NS for k in range(200)]
 
-    estimator = TrainEstimator(EstimatorSettings())
+    estimator = StreamEstimator(EstimatorSettings())
     for k in range(5):
         step = estimator.process(stamps[k], z[k], 1.0)
     sigma_v = np.sqrt(step.P[1, 1])
     assert abs(step.x[1] - 10.0) < 4.0 * sigma_v
     assert sigma_v < 5.0
 
-    prior = TrainEstimator(EstimatorSettings(initialization='prior'))
+    prior = StreamEstimator(EstimatorSettings(initialization='prior'))
     for k in range(5):
         step = prior.process(stamps[k], z[k], 1.0)
     sigma_v = np.sqrt(step.P[1, 1])
@@ -106,7 +106,7 @@ def test_first_measurement_mode_joins_a_moving_train():
 def test_prediction(horizon_s, horizon_ns):
     """The prediction is stamped stamp + horizon in ns and equals F(h) x, F P Fᵀ + Q(h)."""
     settings = EstimatorSettings(horizon_s=horizon_s, process_noise_density=0.2)
-    estimator = TrainEstimator(settings)
+    estimator = StreamEstimator(settings)
     z = _train(10)
     stamp = 1_700_000_000_123_456_789
     for k in range(10):
@@ -124,7 +124,7 @@ def test_prediction(horizon_s, horizon_ns):
 @pytest.mark.parametrize('delta_ns', [0, -1, -PERIOD_NS])
 def test_non_increasing_stamp_rejected(mode, delta_ns):
     """A stamp not newer than the last raises ValueError and leaves the state unchanged."""
-    estimator = TrainEstimator(EstimatorSettings(initialization=mode))
+    estimator = StreamEstimator(EstimatorSettings(initialization=mode))
     z = _train(3)
     for k in range(3):
         estimator.process((k + 1) * PERIOD_NS, z[k], 1.0)
@@ -133,7 +133,7 @@ def test_non_increasing_stamp_rejected(mode, delta_ns):
         estimator.process(3 * PERIOD_NS + delta_ns, 0.4, 1.0)
     assert _state(estimator) == before
     # The estimator still works, and gives what an untouched twin gives.
-    twin = TrainEstimator(EstimatorSettings(initialization=mode))
+    twin = StreamEstimator(EstimatorSettings(initialization=mode))
     for k in range(3):
         twin.process((k + 1) * PERIOD_NS, z[k], 1.0)
     assert np.array_equal(estimator.process(4 * PERIOD_NS, 4.0, 1.0).x,
@@ -151,7 +151,7 @@ def test_non_increasing_stamp_rejected(mode, delta_ns):
 @pytest.mark.parametrize('initialised', [False, True])
 def test_bad_measurement_rejected(position, variance, pattern, initialised):
     """A non-finite position or a non-positive variance is rejected without change."""
-    estimator = TrainEstimator()
+    estimator = StreamEstimator()
     if initialised:
         estimator.process(PERIOD_NS, 1.0, 1.0)
     before = _state(estimator)
@@ -164,7 +164,7 @@ def test_bad_measurement_rejected(position, variance, pattern, initialised):
 @pytest.mark.parametrize('stamp', [1.5e8, '100', None])
 def test_non_integer_stamp_rejected(stamp):
     """A stamp that is not an integer number of nanoseconds is rejected."""
-    estimator = TrainEstimator()
+    estimator = StreamEstimator()
     with pytest.raises(ValueError, match='stamp_ns'):
         estimator.process(stamp, 1.0, 1.0)
     assert not estimator.initialized
@@ -172,9 +172,9 @@ def test_non_integer_stamp_rejected(stamp):
 
 def test_measurement_variance_override():
     """measurement_variance > 0 replaces the message's variance, even an invalid one."""
-    estimator = TrainEstimator(EstimatorSettings(measurement_variance=4.0))
+    estimator = StreamEstimator(EstimatorSettings(measurement_variance=4.0))
     assert estimator.measurement_variance(0.25) == 4.0
-    assert TrainEstimator().measurement_variance(0.25) == 0.25
+    assert StreamEstimator().measurement_variance(0.25) == 0.25
     step = estimator.process(PERIOD_NS, 10.0, 0.0)
     assert step.P[0, 0] == 4.0
     step = estimator.process(2 * PERIOD_NS, 11.0, 0.25)
@@ -185,21 +185,21 @@ def test_measurement_variance_override():
 
 def test_reset():
     """reset() forgets everything; the next measurement initialises afresh, any stamp."""
-    estimator = TrainEstimator()
+    estimator = StreamEstimator()
     estimator.process(10 * PERIOD_NS, 5.0, 1.0)
     estimator.process(11 * PERIOD_NS, 6.0, 1.0)
     estimator.reset()
     assert not estimator.initialized
     assert estimator.state is None and estimator.last_stamp_ns is None
     step = estimator.process(PERIOD_NS, -3.0, 2.0)  # older than before: accepted
-    fresh = TrainEstimator().process(PERIOD_NS, -3.0, 2.0)
+    fresh = StreamEstimator().process(PERIOD_NS, -3.0, 2.0)
     assert np.array_equal(step.x, fresh.x) and np.array_equal(step.P, fresh.P)
     assert estimator.last_stamp_ns == PERIOD_NS
 
 
 def test_state_accessors():
     """The state is None before the first measurement and copies afterwards."""
-    estimator = TrainEstimator()
+    estimator = StreamEstimator()
     assert estimator.state is None and not estimator.initialized
     estimator.process(PERIOD_NS, 1.0, 1.0)
     x, P = estimator.state
@@ -234,7 +234,7 @@ def test_settings_validation(kwargs, name):
     with pytest.raises(ValueError, match=rf'^{name} must'):
         settings.validated()
     with pytest.raises(ValueError, match=rf'^{name} must'):
-        TrainEstimator(settings)
+        StreamEstimator(settings)
 
 
 def test_covariance_from_list():
@@ -243,7 +243,7 @@ def test_covariance_from_list():
     assert np.array_equal(covariance_from_list('c', [2.0, 0.5, 0.5, 1.0], 2),
                           [[2.0, 0.5], [0.5, 1.0]])
     settings = EstimatorSettings(initialization='prior', initial_covariance=(2.0, 0.5, 0.5, 1.0))
-    step = TrainEstimator(settings).process(PERIOD_NS, 0.0, 1.0)
+    step = StreamEstimator(settings).process(PERIOD_NS, 0.0, 1.0)
     np.testing.assert_allclose(step.update.innovation_covariance,
                                [[2.0 + 2 * 0.1 * 0.5 + 0.01 * 1.0 + 1.0]], rtol=1e-14)
 
@@ -260,7 +260,7 @@ def test_nanosecond_epoch_offset(settings):
     stamps = np.cumsum(gaps).tolist()
     positions = 10.0 * np.array(stamps) / NS_PER_S + rng.standard_normal(300)
     epoch = 1_700_000_000_000_000_000
-    near, far = TrainEstimator(settings), TrainEstimator(settings)
+    near, far = StreamEstimator(settings), StreamEstimator(settings)
     for stamp, z in zip(stamps, positions):
         a = near.process(stamp, z, 1.0)
         b = far.process(epoch + stamp, z, 1.0)

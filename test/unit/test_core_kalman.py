@@ -1,9 +1,9 @@
 """Tests of kf_train.filters.kalman against filterpy, seed 000 and closed-form solutions."""
 
 import filterpy.kalman
-from kf_train.estimator.estimator import EstimatorSettings, TrainEstimator
-from kf_train.filters.kalman import KalmanFilter, predict, update
-from kf_train.filters.models import constant_velocity_F, PerStepNoise, WhiteNoiseAcceleration
+from kf_train.estimator import EstimatorSettings, StreamEstimator
+from kf_train.filters import (
+    constant_velocity_F, KalmanFilter, PerStepNoise, predict, update, WhiteNoiseAcceleration)
 import numpy as np
 import pytest
 
@@ -154,7 +154,7 @@ def test_seed_000_transcription():
     expected_x, expected_P = _seed_000_matlab(Z)
 
     kf = KalmanFilter([0.0, 5.0], np.eye(2))
-    estimator = TrainEstimator(EstimatorSettings(initialization='prior'))
+    estimator = StreamEstimator(EstimatorSettings(initialization='prior'))
     for k in range(Nsamples):
         kf.predict(constant_velocity_F(dt), np.zeros((2, 2)))
         kf.update([Z[k]], [[1.0, 0.0]], [[1.0]])

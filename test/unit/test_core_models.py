@@ -3,9 +3,8 @@
 from fractions import Fraction
 import math
 
-from kf_train.filters.models import (
-    constant_velocity_F, ConstantVelocityModel, PerStepNoise, POSITION_H,
-    WhiteNoiseAcceleration)
+from kf_train.filters import (
+    constant_velocity_F, ConstantVelocityModel, PerStepNoise, POSITION_H, WhiteNoiseAcceleration)
 import numpy as np
 import pytest
 from scipy import integrate

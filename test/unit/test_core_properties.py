@@ -1,8 +1,7 @@
 """Property test: the filter keeps a valid covariance over long runs of random inputs."""
 
 from hypothesis import given, settings, strategies as st
-from kf_train.filters.kalman import KalmanFilter
-from kf_train.filters.models import constant_velocity_F, POSITION_H, WhiteNoiseAcceleration
+from kf_train.filters import constant_velocity_F, KalmanFilter, POSITION_H, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 

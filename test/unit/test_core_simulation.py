@@ -2,8 +2,7 @@
 
 import math
 
-from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
-from kf_train.sim.simulation import TrainSimulation
+from kf_train.sim import extrapolate, raw_difference_velocity, running_average, TrainSimulation
 import numpy as np
 import pytest
 

@@ -3,11 +3,11 @@
 import math
 
 from filterpy.kalman import ExtendedKalmanFilter as FilterpyEKF
-from kf_train.batch.series import run_series, SeriesError
-from kf_train.filters.ekf import (
+from kf_train.batch import run_series, SeriesError
+from kf_train.filters import (
     ekf_update, ExtendedKalmanFilter, FunctionMeasurement, RangeBearing, wrap_angle)
-from kf_train.presets.loader import load_preset
-from kf_train.sim.scenarios import range_bearing_scenario
+from kf_train.presets import load_preset
+from kf_train.sim import range_bearing_scenario
 import numpy as np
 import pytest
 

@@ -4,11 +4,9 @@ from fractions import Fraction
 import math
 
 from hypothesis import given, settings, strategies as st
-from kf_train.filters import kalman
-from kf_train.filters.fast import FastTrainFilter, per_step_noise_terms, white_noise_terms
-from kf_train.filters.models import (
-    constant_velocity_F, constant_velocity_model, LinearModel, PerStepNoise, POSITION_H,
-    WhiteNoiseAcceleration)
+from kf_train.filters import (
+    constant_velocity_F, constant_velocity_model, FastTrainFilter, kalman, LinearModel,
+    per_step_noise_terms, PerStepNoise, POSITION_H, white_noise_terms, WhiteNoiseAcceleration)
 import numpy as np
 import pytest
 

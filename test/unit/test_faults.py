@@ -1,17 +1,16 @@
 """
 Tests of fault injection (core.faults) and the estimator core's handling of it.
 
-They feed :class:`FaultInjector` output straight into :class:`TrainEstimator`; the node
+They feed :class:`FaultInjector` output straight into :class:`StreamEstimator`; the node
 versions are in test/ros/test_simulator_faults.py.
 """
 
 import dataclasses
 import math
 
-from kf_train.estimator.estimator import EstimatorSettings, NS_PER_S, Rejected, TrainEstimator
-from kf_train.filters.chi2 import chi2_quantile
-from kf_train.sim.faults import Delivery, FaultInjector, FaultSettings
-from kf_train.sim.simulation import TrainSimulation
+from kf_train.estimator import EstimatorSettings, NS_PER_S, Rejected, StreamEstimator
+from kf_train.filters import chi2_quantile
+from kf_train.sim import Delivery, FaultInjector, FaultSettings, TrainSimulation
 import numpy as np
 import pytest
 
@@ -43,7 +42,7 @@ def _binomial_ok(count, n, p):
 
 def _run(settings, deliveries):
     """Return the estimator after processing the deliveries, and its rejections."""
-    estimator = TrainEstimator(settings)
+    estimator = StreamEstimator(settings)
     rejected = []
     for d in deliveries:
         try:
@@ -78,7 +77,7 @@ def test_dropouts_are_survived():
     assert injector.dropped + len(deliveries) == len(samples)
     assert _binomial_ok(injector.dropped, len(samples), 0.3)
     estimator, rejected = _run(ROBUST, deliveries)
-    assert rejected == [] and estimator.fused_count == len(deliveries)
+    assert rejected == [] and estimator.stats().fused == len(deliveries)
     x, P = estimator.state
     error = np.array([samples[-1].true_position_m, samples[-1].true_velocity_mps]) - x
     assert error @ np.linalg.solve(P, error) < chi2_quantile(0.9999, 2)
@@ -114,7 +113,7 @@ def test_reordered_samples_are_fused_as_if_in_order():
     held = 0.18 / 1.18
     assert _binomial_ok(late, len(samples), held * 0.9)
     estimator, rejected = _run(ROBUST, deliveries)
-    assert rejected == [] and estimator.out_of_sequence_count == late
+    assert rejected == [] and estimator.stats().out_of_sequence == late
     in_order, _ = _run(ROBUST, sorted(deliveries, key=lambda d: d.stamp_ns))
     np.testing.assert_allclose(estimator.state[0], in_order.state[0], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(estimator.state[1], in_order.state[1], rtol=1e-9, atol=1e-12)
@@ -147,7 +146,7 @@ def test_a_stamp_jump_back_is_followed_as_a_restarted_stream():
         stamps[49] - 100 * NS_PER_S)
     estimator, rejected = _run(ROBUST, deliveries)
     assert [r for _, r in rejected] == ['stale_stamp'] * (ROBUST.restart_after_stale - 1)
-    assert estimator.reset_counts['stream_restart'] == 1
+    assert estimator.stats().resets['stream_restart'] == 1
     x, P = estimator.state
     error = np.array([samples[-1].true_position_m, samples[-1].true_velocity_mps]) - x
     assert error @ np.linalg.solve(P, error) < chi2_quantile(0.9999, 2)

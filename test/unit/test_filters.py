@@ -2,13 +2,12 @@
 
 import os
 
-from kf_train.batch.series import run_filter_series, run_series, SeriesError, time_steps_s
+from kf_train.batch import run_filter_series, run_series, SeriesError, time_steps_s
 from kf_train.cli.replay import main as replay_main
-from kf_train.filters.family import (
-    FILTER_KINDS, FilterOptions, gaussian_model, GaussianFilter, make_filter)
-from kf_train.filters.kalman import UpdateResult
-from kf_train.presets.loader import load_preset, PRESET_NAMES
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.filters import (
+    FILTER_KINDS, FilterOptions, gaussian_model, GaussianFilter, make_filter, UpdateResult)
+from kf_train.presets import load_preset, PRESET_NAMES
+from kf_train.sim import scenario_for_preset
 import numpy as np
 import pytest
 

@@ -3,10 +3,9 @@
 import math
 
 from kf_train.batch.fleet import _per_step_noise_arrays, TrainFleet
-from kf_train.filters import kalman
-from kf_train.filters.fast import FastTrainFilter, per_step_noise_terms
-from kf_train.filters.models import (
-    constant_velocity_F, PerStepNoise, POSITION_H, WhiteNoiseAcceleration)
+from kf_train.filters import (
+    constant_velocity_F, FastTrainFilter, kalman, per_step_noise_terms, PerStepNoise, POSITION_H,
+    WhiteNoiseAcceleration)
 import numpy as np
 import pytest
 

@@ -13,7 +13,7 @@ import os
 import subprocess
 import sys
 
-from kf_train.estimator.estimator import EstimatorSettings, preset_defaults
+from kf_train.estimator import EstimatorSettings, preset_defaults
 from kf_train.ros import estimator_params, simulator_params
 from kf_train.ros.estimator_params import (
     changed_config, DEFAULTS, estimator_config, load_estimator_config, NodeOptions)
@@ -22,7 +22,7 @@ from kf_train.ros.param_spec import (
     node_parameters, ParameterError, ParamSpec, parse_override, parse_value,
     read_params_file, ros_scalar, yaml_scalar)
 from kf_train.ros.simulator_params import load_simulator_config, SimulatorOptions
-from kf_train.sim.faults import FaultSettings
+from kf_train.sim import FaultSettings
 import pytest
 import yaml
 

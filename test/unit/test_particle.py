@@ -2,11 +2,10 @@
 
 import math
 
-from kf_train.batch.series import run_series, time_steps_s
-from kf_train.filters.particle import (
-    log_normalise, ParticleFilter, psd_factor, systematic_resample)
-from kf_train.presets.loader import load_preset, preset_from_mapping
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.batch import run_series, time_steps_s
+from kf_train.filters import log_normalise, ParticleFilter, psd_factor, systematic_resample
+from kf_train.presets import load_preset, preset_from_mapping
+from kf_train.sim import scenario_for_preset
 import numpy as np
 import pytest
 from scipy import stats

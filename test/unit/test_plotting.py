@@ -4,14 +4,13 @@ import os
 import subprocess
 import sys
 
-from kf_train.batch.series import run_series
+from kf_train.batch import run_series
 from kf_train.cli.plotting import (
     build_seed000_figures, main, measured_states, preset_figure, scenario_figures,
     seed000_figures)
 from kf_train.cli.replay import main as replay_main
-from kf_train.presets.loader import load_preset, PRESET_NAMES
-from kf_train.sim import baselines
-from kf_train.sim.scenarios import train_scenario
+from kf_train.presets import load_preset, PRESET_NAMES
+from kf_train.sim import baselines, train_scenario
 from matplotlib import image
 import numpy as np
 import pytest

@@ -11,12 +11,12 @@ import os
 import textwrap
 
 from filterpy.kalman import KalmanFilter as FilterpyKF
-from kf_train.batch.series import run_linear_series, run_series
+from kf_train.batch import run_linear_series, run_series
 from kf_train.cli.replay import main as replay_main, read_table
 from kf_train.presets.loader import (
     available_presets, ControlMatrix, DtExpression, Dynamics, load_preset,
     load_preset_file, per_step_weights, preset_from_mapping, PRESET_NAMES)
-from kf_train.sim.scenarios import robot_scenario
+from kf_train.sim import robot_scenario
 import numpy as np
 import pytest
 from scipy import integrate, stats

@@ -6,12 +6,11 @@ import subprocess
 import sys
 
 from kf_train import cli
-from kf_train.batch.series import (
-    affine_recursion, run_linear_series, run_series, time_steps_s)
-from kf_train.batch.smoother import smooth_series
+from kf_train.batch import (
+    affine_recursion, run_linear_series, run_series, smooth_series, time_steps_s)
 from kf_train.cli.replay import main, read_table, required_columns
-from kf_train.presets.loader import load_preset, PRESET_NAMES
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.presets import load_preset, PRESET_NAMES
+from kf_train.sim import scenario_for_preset
 import numpy as np
 import pytest
 

@@ -8,12 +8,11 @@ time order and checks the bank (the API and ``kf-train replay``) against
 
 import os
 
-from kf_train.batch import series
-from kf_train.batch.series import group_rows, run_bank, run_filter_series, run_series
-from kf_train.batch.smoother import smooth_series
+from kf_train.batch import bank, group_rows, run_bank, run_filter_series, run_series
+from kf_train.batch import smooth_series
 from kf_train.cli.replay import main, read_table
-from kf_train.filters.family import FilterOptions, make_filter
-from kf_train.presets.loader import load_preset, PRESET_NAMES
+from kf_train.filters import FilterOptions, make_filter
+from kf_train.presets import load_preset, PRESET_NAMES
 import numpy as np
 import pytest
 
@@ -83,12 +82,12 @@ def test_bank_equals_each_object_alone(name):
 def test_both_bank_strategies_equal_each_object_alone(monkeypatch, name, split):
     """All objects in lock-step, all along their own axes, or the cost model's mix."""
     if split == 'lock-step':
-        monkeypatch.setattr(series, 'LOCKSTEP_STEP_S', 0.0)
+        monkeypatch.setattr(bank, 'LOCKSTEP_STEP_S', 0.0)
     elif split == 'alone':
-        monkeypatch.setattr(series, 'SERIES_CALL_S', 0.0)
+        monkeypatch.setattr(bank, 'SERIES_CALL_S', 0.0)
     else:  # a few long objects alone, the many short ones in lock-step
-        monkeypatch.setattr(series, 'SERIES_CALL_S', 1e-3)
-        monkeypatch.setattr(series, 'LOCKSTEP_STEP_S', 1e-4)
+        monkeypatch.setattr(bank, 'SERIES_CALL_S', 1e-3)
+        monkeypatch.setattr(bank, 'LOCKSTEP_STEP_S', 1e-4)
     preset = load_preset(name)
     counts = [400, 350] + [3, 1, 7, 2] * 5
     t, z, u, ids = _fleet(preset, counts, 7)
@@ -115,13 +114,13 @@ def test_groups_and_time_rules():
         groups_int = group_rows(np.array(ids))
         assert groups_int.labels.tolist() == sorted(set(ids))
         assert [groups_int.labels[c] for c in groups_int.codes] == ids
-    dt = series.bank_time_steps([0.5, 0.0, 0.7, 0.25], groups, 0.0)
+    dt = bank.bank_time_steps([0.5, 0.0, 0.7, 0.25], groups, 0.0)
     _close(dt, [0.5, 0.0, 0.2, 0.25], 0.0)
     message = r"t_s\[3\] = 0.4 is not after t_s\[2\] = 0.4, the previous row of id 'b'"
-    with pytest.raises(series.TimeOrderError, match=message):
-        series.bank_time_steps([0.1, 0.2, 0.4, 0.4], group_rows(['a', 'a', 'b', 'b']))
-    with pytest.raises(series.TimeOrderError, match=r't_s\[1\] = -0.1 is before t0_s'):
-        series.bank_time_steps([0.1, -0.1], group_rows(['a', 'b']))
+    with pytest.raises(bank.TimeOrderError, match=message):
+        bank.bank_time_steps([0.1, 0.2, 0.4, 0.4], group_rows(['a', 'a', 'b', 'b']))
+    with pytest.raises(bank.TimeOrderError, match=r't_s\[1\] = -0.1 is before t0_s'):
+        bank.bank_time_steps([0.1, -0.1], group_rows(['a', 'b']))
     with pytest.raises(ValueError, match='one entry per row'):
         run_bank(load_preset('train'), [0.1, 0.2], [[1.0], [2.0]], None, ['a'])
 

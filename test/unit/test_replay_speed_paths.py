@@ -11,10 +11,10 @@ import os
 import struct
 
 from hypothesis import given, settings, strategies as st
-from kf_train.batch.series import run_series
+from kf_train.batch import run_series
 from kf_train.cli.replay import main, read_table
-from kf_train.io import csvio
-from kf_train.presets.loader import load_preset
+from kf_train.io import csv_tables, csvio
+from kf_train.presets import load_preset
 import numpy as np
 import pytest
 
@@ -238,9 +238,9 @@ def test_bytes_with_a_byte_order_mark_and_crlf(tmp_path):
 def test_power_table_is_exact():
     """The double-double powers of ten are the correctly rounded 10^k and remainder."""
     from fractions import Fraction
-    T = csvio._tables()
+    T = csv_tables._tables()
     for k in (-300, -23, -1, 0, 1, 22, 23, 300):
-        i = k - csvio._K_MIN
+        i = k - csv_tables._K_MIN
         exact = Fraction(10) ** k
         assert T.p_hi[i] == float(exact)
         assert T.p_lo[i] == float(exact - Fraction(float(exact)))

@@ -4,7 +4,7 @@ import math
 import subprocess
 import sys
 
-from kf_train.filters.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
+from kf_train.filters import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
 import pytest
 from scipy import stats
 

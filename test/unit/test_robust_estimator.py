@@ -3,10 +3,9 @@
 import dataclasses
 import math
 
-from kf_train.estimator.estimator import (
-    EstimatorSettings, NS_PER_S, Rejected, REJECTION_REASONS, RESET_REASONS, TrainEstimator)
-from kf_train.filters.chi2 import chi2_quantile
-from kf_train.filters.models import constant_velocity_F, WhiteNoiseAcceleration
+from kf_train.estimator import (
+    EstimatorSettings, NS_PER_S, Rejected, REJECTION_REASONS, RESET_REASONS, StreamEstimator)
+from kf_train.filters import chi2_quantile, constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 
@@ -35,7 +34,7 @@ def _snapshot(estimator):
 
 def _fed(settings, stamps, positions, variance=1.0):
     """Return an estimator that fused the given measurements in order."""
-    estimator = TrainEstimator(settings)
+    estimator = StreamEstimator(settings)
     for stamp, z in zip(stamps, positions):
         estimator.process(stamp, z, variance, frame_id='odom')
     return estimator
@@ -84,8 +83,8 @@ def test_bad_input_is_rejected_counted_and_changes_nothing(name):
     assert raised.value.reason == reason
     assert isinstance(raised.value, ValueError)
     assert raised.value.reset is None
-    assert _only(estimator.rejection_counts, reason)
-    assert sum(estimator.reset_counts.values()) == 0
+    assert _only(estimator.stats().rejections, reason)
+    assert sum(estimator.stats().resets.values()) == 0
     assert _snapshot(estimator) == before
     # It keeps running, exactly as if the bad input had never come.
     step = estimator.process(stamps[30], positions[30], 1.0, frame_id='odom', now_ns=now_ns)
@@ -97,7 +96,7 @@ def test_bad_input_is_rejected_counted_and_changes_nothing(name):
 def test_bad_first_input_leaves_the_filter_uninitialised(name):
     """A bad measurement before the first good one does not initialise the filter."""
     reason, change = BAD_INPUTS[name]
-    estimator = TrainEstimator(ROBUST)
+    estimator = StreamEstimator(ROBUST)
     with pytest.raises(Rejected) as raised:
         estimator.process(change.get('stamp', EPOCH_NS), change.get('position', 1.0),
                           change.get('variance', 1.0), frame_id=change.get('frame_id', 'odom'))
@@ -107,17 +106,17 @@ def test_bad_first_input_leaves_the_filter_uninitialised(name):
 
 def test_checks_that_need_context_are_skipped_without_it():
     """No frame given, no expected frame, or no clock (None or 0) skip those checks."""
-    estimator = TrainEstimator(ROBUST)
+    estimator = StreamEstimator(ROBUST)
     estimator.process(EPOCH_NS, 1.0, 1.0)  # frame unknown
     estimator.process(EPOCH_NS + PERIOD_NS, 2.0, 1.0, now_ns=0)  # clock not started
-    anything = TrainEstimator(dataclasses.replace(ROBUST, expected_frame_id=''))
+    anything = StreamEstimator(dataclasses.replace(ROBUST, expected_frame_id=''))
     anything.process(EPOCH_NS, 1.0, 1.0, frame_id='whatever', now_ns=EPOCH_NS - NS_PER_S)
-    assert estimator.fused_count == 2 and anything.fused_count == 1
+    assert estimator.stats().fused == 2 and anything.stats().fused == 1
 
 
 def test_variance_override_still_rejects_a_broken_message():
     """With measurement_variance set, a 0 message variance is fine but a NaN one is not."""
-    estimator = TrainEstimator(dataclasses.replace(ROBUST, measurement_variance=2.0))
+    estimator = StreamEstimator(dataclasses.replace(ROBUST, measurement_variance=2.0))
     estimator.process(EPOCH_NS, 1.0, 0.0)
     with pytest.raises(Rejected, match='variance') as raised:
         estimator.process(EPOCH_NS + PERIOD_NS, 1.0, math.nan)
@@ -140,19 +139,19 @@ def test_out_of_sequence_replay_equals_in_order(mode, seed):
     order = sorted(range(n), key=lambda k: k + rng.uniform(0.0, 5.0))
     order.remove(0)
     order.insert(3, 0)  # the first one comes late too: in order it initialised the filter
-    shuffled = TrainEstimator(settings)
+    shuffled = StreamEstimator(settings)
     for k in order:
         step = shuffled.process(stamps[k], positions[k], 1.0, frame_id='odom')
         assert step.measurement_stamp_ns == stamps[k]
         assert step.stamp_ns == shuffled.last_stamp_ns
         assert step.replayed == sum(1 for j in order[:order.index(k)] if j > k)
-    assert shuffled.out_of_sequence_count > 50
+    assert shuffled.stats().out_of_sequence > 50
     x, P = shuffled.state
     np.testing.assert_allclose(x, in_order.state[0], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(P, in_order.state[1], rtol=1e-9, atol=1e-12)
     assert np.array_equal(x, in_order.state[0]) and np.array_equal(P, in_order.state[1])
     assert shuffled.last_stamp_ns == in_order.last_stamp_ns == stamps[-1]
-    assert sum(shuffled.rejection_counts.values()) == 0
+    assert sum(shuffled.stats().rejections.values()) == 0
 
 
 def test_replay_uses_the_settings_each_measurement_was_fused_with():
@@ -194,9 +193,9 @@ def test_history_is_bounded_by_history_s():
     settings = dataclasses.replace(ROBUST, gate_probability=1.0)
     stamps, positions = _stream(500)
     estimator = _fed(settings, stamps, positions)
-    assert estimator.history_length == 11  # 1 s at 10 Hz, plus the anchor
+    assert estimator.stats().history_length == 11  # 1 s at 10 Hz, plus the anchor
     estimator.reconfigure(dataclasses.replace(settings, history_s=0.0))
-    assert estimator.history_length == 0
+    assert estimator.stats().history_length == 0
     with pytest.raises(Rejected, match='not newer') as raised:
         estimator.process(stamps[-1] - 1, 0.0, 1.0)
     assert raised.value.reason == 'stale_stamp'
@@ -212,7 +211,7 @@ def test_a_single_stale_measurement_is_rejected_and_a_restarted_stream_is_follow
         with pytest.raises(Rejected):
             estimator.process(restarted[0], 0.0, 1.0)
         estimator.process(stamps[k], positions[k], 1.0)
-    assert estimator.rejection_counts['stale_stamp'] == 10
+    assert estimator.stats().rejections['stale_stamp'] == 10
     # restart_after_stale = 3 in a row: the third resets and initialises from itself.
     for k in range(2):
         with pytest.raises(Rejected) as raised:
@@ -220,8 +219,8 @@ def test_a_single_stale_measurement_is_rejected_and_a_restarted_stream_is_follow
         assert raised.value.reason == 'stale_stamp'
     step = estimator.process(restarted[2], 7.0, 1.0)
     assert step.reset == 'stream_restart'
-    assert estimator.reset_counts['stream_restart'] == 1
-    fresh = TrainEstimator(ROBUST).process(restarted[2], 7.0, 1.0)
+    assert estimator.stats().resets['stream_restart'] == 1
+    fresh = StreamEstimator(ROBUST).process(restarted[2], 7.0, 1.0)
     assert np.array_equal(step.x, fresh.x) and np.array_equal(step.P, fresh.P)
     assert estimator.last_stamp_ns == restarted[2]
 
@@ -242,22 +241,22 @@ def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
         estimator.process(stamps[23], jumped[23], 1.0)
     assert raised.value.reset == 'outlier_lockout'
     assert not estimator.initialized
-    assert estimator.reset_counts['outlier_lockout'] == 1
-    assert estimator.rejection_counts['outlier'] == 4
+    assert estimator.stats().resets['outlier_lockout'] == 1
+    assert estimator.stats().rejections['outlier'] == 4
     step = estimator.process(stamps[24], jumped[24], 1.0)  # initialises, never gated
     for k in range(25, 40):
         step = estimator.process(stamps[k], jumped[k], 1.0)
     # Back on the train (500 m further than before), also in prior mode: the lock-out
     # re-initialises from the measurement, not from the prior the data contradicted.
     assert abs(step.x[0] - (500.0 + 10.0 * 0.1 * 40)) < 4.0 * math.sqrt(step.P[0, 0])
-    assert estimator.rejection_counts['outlier'] == 4
+    assert estimator.stats().rejections['outlier'] == 4
 
 
 def test_gate_threshold_comes_from_the_chi2_quantile_and_changes_live():
     """gate_threshold is the χ²(1) quantile of gate_probability; 1 disables the gate."""
     strict = dataclasses.replace(ROBUST, gate_probability=0.999)
-    assert TrainEstimator(strict).gate_threshold == chi2_quantile(0.999, 1)
-    assert TrainEstimator(EstimatorSettings()).gate_threshold == math.inf
+    assert StreamEstimator(strict).gate_threshold == chi2_quantile(0.999, 1)
+    assert StreamEstimator(EstimatorSettings()).gate_threshold == math.inf
     stamps, positions = _stream(21)
     estimator = _fed(strict, stamps[:20], positions[:20])
     x, P = estimator.state
@@ -298,7 +297,7 @@ def test_set_state():
             estimator.set_state(*args)
         assert _snapshot(estimator) == before
     estimator.set_state(stamps[5], [6.0, 10.0], np.diag([0.5, 0.25]))
-    assert estimator.reset_counts['set_state'] == 1
+    assert estimator.stats().resets['set_state'] == 1
     assert estimator.last_stamp_ns == stamps[5]
     with pytest.raises(Rejected) as raised:  # before the set state: nothing to rewind to
         estimator.process(stamps[4], positions[4], 1.0)
@@ -313,14 +312,14 @@ def test_set_state():
 
 def test_reset_reasons_are_counted_and_checked():
     """reset(reason) counts by reason; an unknown reason is refused."""
-    estimator = TrainEstimator(ROBUST)
+    estimator = StreamEstimator(ROBUST)
     for reason in RESET_REASONS:
         estimator.reset(reason)
     estimator.reset()
-    assert estimator.reset_counts == {**dict.fromkeys(RESET_REASONS, 1), 'manual': 2}
+    assert estimator.stats().resets == {**dict.fromkeys(RESET_REASONS, 1), 'manual': 2}
     with pytest.raises(ValueError, match='reason'):
         estimator.reset('bogus')
-    assert set(estimator.rejection_counts) == set(REJECTION_REASONS)
+    assert set(estimator.stats().rejections) == set(REJECTION_REASONS)
 
 
 @pytest.mark.parametrize('kwargs, name', [
@@ -339,8 +338,8 @@ def test_reset_reasons_are_counted_and_checked():
 def test_new_settings_are_validated(kwargs, name):
     """Each bad robustness setting raises ValueError naming it (and its range)."""
     with pytest.raises(ValueError, match=rf'^{name} must'):
-        TrainEstimator(EstimatorSettings(**kwargs))
-    estimator = TrainEstimator(ROBUST)
+        StreamEstimator(EstimatorSettings(**kwargs))
+    estimator = StreamEstimator(ROBUST)
     with pytest.raises(ValueError, match=rf'^{name} must'):
         estimator.reconfigure(EstimatorSettings(**kwargs))
     assert estimator.settings == ROBUST

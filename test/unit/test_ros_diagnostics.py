@@ -2,9 +2,9 @@
 
 import dataclasses
 
-from kf_train.estimator.estimator import (
-    CONTROL_REJECTION_REASONS, NS_PER_S, REJECTION_REASONS, RESET_REASONS, TrainEstimator)
-from kf_train.filters.chi2 import chi2_mean_bounds
+from kf_train.estimator import (
+    CONTROL_REJECTION_REASONS, NS_PER_S, REJECTION_REASONS, RESET_REASONS, StreamEstimator)
+from kf_train.filters import chi2_mean_bounds
 from kf_train.ros.diagnostics import (
     Activity, CONSISTENCY_CONFIDENCE, filter_status, nis_bounds, NodeCounts)
 from kf_train.ros.estimator_params import DEFAULTS
@@ -17,7 +17,7 @@ ACTIVE = Activity(input_rate_hz=10.0, fused_rate_hz=9.5, age_s=0.05, ever_fused=
 
 def _estimator(updates=5, **settings):
     """Return an estimator of the node's defaults after ``updates`` measurements at 10 Hz."""
-    estimator = TrainEstimator(dataclasses.replace(DEFAULTS, **settings))
+    estimator = StreamEstimator(dataclasses.replace(DEFAULTS, **settings))
     for k in range(1, updates + 1):
         estimator.process(k * NS_PER_S // 10, 1.0 * k, 1.0)
     return estimator
@@ -50,7 +50,7 @@ def test_status_values_in_order():
 
 def test_waiting_and_timed_out():
     """Before any measurement: waiting; past timeout_s without a fused one: WARN, once worded."""
-    estimator = TrainEstimator(DEFAULTS)
+    estimator = StreamEstimator(DEFAULTS)
     waiting = filter_status(estimator, NodeCounts(0, 0, 0, 0, 0, 0),
                             Activity(0.0, 0.0, 0.5, False), 1.0, [])
     assert (waiting.level, waiting.message) == ('OK', 'waiting for measurements')
@@ -89,13 +89,13 @@ def test_ill_conditioned_covariance_warns_and_warnings_join():
 
 def test_control_presets_show_their_control_counts():
     """A preset with a control adds the node's and the estimator's control counts."""
-    estimator = TrainEstimator(dataclasses.replace(DEFAULTS, preset='car'))
+    estimator = StreamEstimator(dataclasses.replace(DEFAULTS, preset='car'))
     estimator.add_control(NS_PER_S, [1.0])
     counts = COUNTS._replace(controls_received=3, controls_rejected=1)
     values = dict(filter_status(estimator, counts, ACTIVE, 1.0, []).values)
     assert values['controls_received'] == '3' and values['controls_rejected'] == '1'
     assert {key for key in values if key.startswith('controls.')} == {
-        f'controls.{key}' for key in estimator.control_counts}
+        f'controls.{key}' for key in estimator.stats().controls}
     assert {key for key in values if key.startswith('controls_rejected.')} == {
         f'controls_rejected.{reason}' for reason in CONTROL_REJECTION_REASONS}
 
@@ -107,7 +107,7 @@ def test_filter_specific_values():
     pf = _estimator(filter='pf', pf_particles=200, process_noise_density=0.1)
     values = dict(filter_status(pf, COUNTS, ACTIVE, 1.0, []).values)
     assert float(values['pf_ess']) <= 200 and int(values['pf_resample_count']) >= 0
-    fresh = TrainEstimator(dataclasses.replace(DEFAULTS, filter='pf'))
+    fresh = StreamEstimator(dataclasses.replace(DEFAULTS, filter='pf'))
     assert 'pf_ess' not in dict(filter_status(fresh, COUNTS, ACTIVE, 1.0, []).values)
 
 

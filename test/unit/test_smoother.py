@@ -1,10 +1,9 @@
 """Tests of kf_train.batch.smoother: RTS against filterpy and against the batch solution."""
 
 from filterpy.kalman import rts_smoother
-from kf_train.batch.series import run_linear_series, run_series
-from kf_train.batch.smoother import rts_smooth, smooth_series
-from kf_train.presets.loader import load_preset, preset_from_mapping
-from kf_train.sim.scenarios import range_bearing_scenario, robot_scenario
+from kf_train.batch import rts_smooth, run_linear_series, run_series, smooth_series
+from kf_train.presets import load_preset, preset_from_mapping
+from kf_train.sim import range_bearing_scenario, robot_scenario
 import numpy as np
 import pytest
 

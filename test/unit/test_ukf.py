@@ -7,13 +7,12 @@ from filterpy.kalman import unscented_transform as filterpy_transform
 from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from kf_train.batch.series import run_filter_series, run_series, time_steps_s
-from kf_train.filters.family import make_filter
-from kf_train.filters.ukf import (
-    MerweScaledSigmaPoints, robust_cholesky, unscented_predict, unscented_update,
+from kf_train.batch import run_filter_series, run_series, time_steps_s
+from kf_train.filters import (
+    make_filter, MerweScaledSigmaPoints, robust_cholesky, unscented_predict, unscented_update,
     UnscentedModel)
-from kf_train.presets.loader import load_preset, preset_from_mapping, PRESET_NAMES
-from kf_train.sim.scenarios import scenario_for_preset
+from kf_train.presets import load_preset, preset_from_mapping, PRESET_NAMES
+from kf_train.sim import scenario_for_preset
 import numpy as np
 import pytest
 import yaml

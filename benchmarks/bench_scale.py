@@ -1,5 +1,5 @@
 """
-``make bench`` rows 6 and 7: offline replay at scale, and how many trains a machine tracks live.
+``make bench`` rows 6 and 7: offline replay at scale, and how many trains one machine tracks.
 
 Row 6 (offline, every figure from a child process, start-up included unless said):
 
@@ -29,7 +29,7 @@ import tempfile
 import time
 from typing import List, Tuple
 
-Row = Tuple[str, str, str, str, str, str]
+from bench_common import Row
 
 # Runs a command and prints its wall time, CPU time and peak RSS (its own rusage).
 _MEASURE = r"""
@@ -270,21 +270,21 @@ def _pss_mib(pid: int) -> float:
     return float('nan')
 
 
-def rows_live_fleet(quick: bool, bench) -> List[Row]:
+def rows_live_fleet(quick: bool) -> List[Row]:
     """Measure row 7: one estimator fed at 10 Hz, its CPU share and memory."""
-    domains = bench.Domains()
+    from bench_children import Child, Domains, helper, node_command
+    domains = Domains()
     env = domains.env()
     duration_s = 3.0 if quick else 20.0
     children = []
     try:
-        node = bench.Child(bench._node_command('estimator') + [
+        node = Child(node_command('estimator') + [
             '--executor', 'events', '--ros-args', '--log-level', 'error'], env, 'estimator')
         children.append(node)
-        probe = bench.Child(bench._helper('_probe', 'estimate', 'odometry'), env, 'probe')
+        probe = Child(helper('probe', 'estimate', 'odometry'), env, 'probe')
         children.append(probe)
         probe.wait_for('ready', 30.0)
-        publisher = bench.Child(bench._helper('_publisher', 10, int(10 * duration_s)), env,
-                                'publisher')
+        publisher = Child(helper('publisher', 10, int(10 * duration_s)), env, 'publisher')
         children.append(publisher)
         publisher.wait_for('start', 30.0)
         time.sleep(1.0)                  # past start-up: steady state only

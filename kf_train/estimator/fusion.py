@@ -1,0 +1,273 @@
+"""
+The estimator's state machine on checked inputs: fuse, rewind, replay, reset.
+
+:class:`Fusion` keeps the newest state (x, P at the last fused stamp), the history
+for out-of-sequence fusion (:mod:`~kf_train.estimator.history`), the controls
+(:mod:`~kf_train.estimator.controls`) and the counts. Its inputs have passed the
+contract (:mod:`~kf_train.estimator.contract`): integer stamps, finite measurements
+as (z, R) arrays, read-only control vectors. It applies the policy: the χ² gate, the
+lock-out after consecutive rejections, the stream restart after consecutive stale
+stamps. Every rejection is counted and raised as :class:`Rejected`, with the state
+exactly as before unless the rejection itself reset the filter.
+"""
+
+from typing import Optional, Tuple
+
+from kf_train.estimator.contract import (
+    Counters, EstimateStep, NUMERICAL_ERRORS, Rejected)
+from kf_train.estimator.controls import Controls, propagate, prune_controls
+from kf_train.estimator.history import (
+    Entry, History, initial_state, replay, replay_control, rewind_point)
+from kf_train.estimator.settings import Configuration
+from kf_train.filters import NS_PER_S, UpdateResult
+import numpy as np
+
+
+class Fusion:
+    """The fused state of one stream, and the ways a measurement or control changes it."""
+
+    def __init__(self, config: Configuration, dim_u: int):
+        """Start uninitialised with ``config``; controls of ``dim_u`` components (0: none)."""
+        self.x: Optional[np.ndarray] = None
+        self.P: Optional[np.ndarray] = None
+        self.last_stamp_ns: Optional[int] = None
+        self.history = History()
+        self.consecutive_outliers = 0
+        self.stale_streak = 0
+        self.locked_out = False
+        self.counters = Counters()
+        self.configure(config)
+        self.controls: Optional[Controls] = Controls(dim_u) if dim_u else None
+
+    def configure(self, config: Configuration) -> None:
+        """Use ``config`` from now on (the state is kept; history_s 0 drops the history)."""
+        self.config = config
+        self.history.window_ns = config.history_ns
+        if config.history_ns == 0:
+            self.history.clear()
+
+    def reset(self, reason: str) -> None:
+        """Forget the state; the next measurement initialises the filter again."""
+        self.x = self.P = None
+        self.last_stamp_ns = None
+        self.history.clear()
+        self.consecutive_outliers = 0
+        self.stale_streak = 0
+        self.locked_out = reason == 'outlier_lockout'
+        if reason in ('clock_jump', 'stream_restart') and self.controls is not None:
+            self.controls.clear()  # stamped on the old time line
+        self.counters.resets[reason] += 1
+
+    def set_state(self, stamp_ns: int, x: np.ndarray, P: np.ndarray) -> None:
+        """Replace the state with checked (x, P) at ``stamp_ns`` (a ``set_state`` reset)."""
+        self.reset('set_state')
+        self.x, self.P, self.last_stamp_ns = x, P, stamp_ns
+        self.history.append(Entry(stamp_ns, None, None, self.config.model, x, P, 'set'))
+
+    def measure(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+        """Fuse a checked measurement: initialise, in order, out of sequence, or stale."""
+        newest = self.last_stamp_ns
+        if self.x is None:
+            return self._initialise(stamp_ns, z, R)
+        if stamp_ns > newest:
+            return self._fuse_in_order(stamp_ns, z, R)
+        if stamp_ns == newest:
+            self._reject('duplicate_stamp', f'measurement stamp {stamp_ns} ns is not newer than '
+                         f'the last fused one, {newest} ns (a duplicate)')
+        if newest - stamp_ns < self.history.window_ns:
+            return self._fuse_out_of_sequence(stamp_ns, z, R)
+        return self._stale(stamp_ns, z, R)
+
+    def control(self, stamp_ns: int, u: np.ndarray) -> Optional[EstimateStep]:
+        """Take a checked control; return the corrected estimate if fused ones changed."""
+        newest = self.last_stamp_ns
+        if self.x is None or (not self.history and stamp_ns > newest):
+            self.controls.put(stamp_ns, u)
+            return self._accept_control()
+        if not self.history:
+            self._reject_control('stale_stamp', (
+                f'control stamp {stamp_ns} ns is not newer than the last fused measurement, '
+                f'{newest} ns, and no state is kept to replay from (history_s = 0)'))
+        return self._late_control(stamp_ns, u)
+
+    def _reject(self, reason: str, message: str, reset: Optional[str] = None,
+                update: Optional[UpdateResult] = None) -> None:
+        """Count a rejection and raise it."""
+        self.counters.rejections[reason] += 1
+        raise Rejected(reason, message, reset, update)
+
+    def _reject_control(self, reason: str, message: str) -> None:
+        """Count a control rejection and raise it."""
+        self.counters.control_rejections[reason] += 1
+        raise Rejected(reason, message)
+
+    def _reject_update(self, reason: str, message: str,
+                       update: Optional[UpdateResult] = None) -> None:
+        """Reject an outlier or a numerical failure; enough in a row reset the filter."""
+        self.consecutive_outliers += 1
+        reset = None
+        if self.consecutive_outliers >= self.config.settings.max_consecutive_outliers:
+            reset = 'outlier_lockout'
+            message += (f'; {self.consecutive_outliers} consecutive rejections: filter '
+                        'reset, the next measurement initialises it')
+            self.reset(reset)
+        self._reject(reason, message, reset, update)
+
+    def _late_control(self, stamp_ns: int, u: np.ndarray) -> Optional[EstimateStep]:
+        """Keep a control for fused intervals: rewind to before it and replay."""
+        try:
+            outcome = replay_control(self.config, self.controls, self.history.entries(),
+                                     self.locked_out, stamp_ns, u, self._predict_ahead)
+        except Rejected as rejection:
+            self.counters.control_rejections[rejection.reason] += 1
+            raise
+        if outcome.entries is None:
+            if outcome.prune:
+                return self._accept_control()
+            self.counters.controls_accepted += 1
+            return None
+        self.history.replace(outcome.entries)
+        self.x, self.P = outcome.x, outcome.P
+        self.counters.controls_late += 1
+        self._accept_control()
+        newest = self.last_stamp_ns
+        return EstimateStep(newest, outcome.x.copy(), outcome.P.copy(), None,
+                            newest + self.config.horizon_ns, outcome.predicted[0],
+                            outcome.predicted[1], 0, outcome.replayed, None, stamp_ns)
+
+    def _accept_control(self) -> None:
+        """Count an accepted control; forget controls no longer needed. Return None."""
+        self.counters.controls_accepted += 1
+        self._prune_controls()
+
+    def _prune_controls(self) -> None:
+        """Forget controls no replay or prediction can need any more."""
+        prune_controls(self.controls, self.history, self.last_stamp_ns,
+                       self.config.nominal_ns)
+
+    def _stale(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+        """Reject a stale measurement, or restart from it after enough in a row."""
+        self.stale_streak += 1
+        if self.stale_streak >= self.config.settings.restart_after_stale:
+            self.reset('stream_restart')
+            return self._initialise(stamp_ns, z, R)._replace(reset='stream_restart')
+        newest = self.last_stamp_ns
+        self._reject('stale_stamp', (
+            f'measurement stamp {stamp_ns} ns is not newer than the last fused one, '
+            f'{newest} ns, and {(newest - stamp_ns) / NS_PER_S:.6f} s older: beyond '
+            f'history_s = {self.config.settings.history_s}'))
+
+    def _init_state(self, stamp_ns: int, z: np.ndarray, R: np.ndarray, model):
+        """Return (x, P, update result or None, u, exact) of the filter initialised by z."""
+        return initial_state(self.config, self.controls, self.locked_out, stamp_ns, z, R,
+                             model)
+
+    def _initialise(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+        """Start the filter from this measurement (never gated)."""
+        try:
+            x, P, result, u, exact = self._init_state(stamp_ns, z, R, self.config.model)
+            predicted = self._predict_ahead(x, P, u)
+        except NUMERICAL_ERRORS as error:
+            self._reject('numerical', f'initialisation failed: {error}')
+        self.history.clear()
+        # After a lock-out the state starts from the measurement: no rewinding past it.
+        self._commit(stamp_ns, x, P, 'reinit' if self.locked_out else 'init', z, R)
+        self.counters.provisional += result is not None and not exact
+        self.locked_out = False
+        return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
+
+    def _fuse_in_order(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+        """Predict from the newest state to the stamp, gate, update, commit."""
+        x, P, result, predicted, exact = self._gated_update(
+            self.x, self.P, self.last_stamp_ns, stamp_ns, z, R)
+        self._commit(stamp_ns, x, P, 'update', z, R)
+        self.counters.provisional += not exact
+        return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
+
+    def _gated_update(self, x0, P0, t_a: int, t_b: int, z: np.ndarray, R: np.ndarray):
+        """Return (x, P, result, prediction ahead, exact) or reject as outlier/numerical."""
+        try:
+            x, P, u, exact = propagate(self.controls, self.config.model, x0, P0, t_a, t_b)
+            x, P, result = self.config.model.update(x, P, z, R)
+        except NUMERICAL_ERRORS as error:
+            self._reject_update('numerical', f'update failed: {error}')
+        threshold = self.config.gate_threshold
+        if result.nis > threshold:
+            self._reject_update('outlier', (
+                f'NIS {result.nis:.6g} exceeds the gate {threshold:.6g} '
+                f'(gate_probability {self.config.settings.gate_probability}); innovation '
+                f'{np.array2string(result.innovation, precision=6)}'), result)
+        try:
+            predicted = self._predict_ahead(x, P, u)
+        except NUMERICAL_ERRORS as error:
+            self._reject_update('numerical', f'prediction failed: {error}')
+        return x, P, result, predicted, exact
+
+    def _fuse_out_of_sequence(self, stamp_ns: int, z: np.ndarray,
+                              R: np.ndarray) -> EstimateStep:
+        """Rewind to the last state before stamp_ns, fuse, replay the later ones."""
+        entries = self.history.entries()
+        try:
+            i = rewind_point(entries, stamp_ns, self.last_stamp_ns)
+        except Rejected as rejection:
+            self.counters.rejections[rejection.reason] += 1
+            raise
+        if i == 0:
+            # Older than the initialising measurement: in order, this one would have
+            # initialised the filter and the old first one been an update.
+            try:
+                x, P, result, u, exact = self._init_state(stamp_ns, z, R, self.config.model)
+            except NUMERICAL_ERRORS as error:
+                self._reject('numerical', f'initialisation failed: {error}')
+            kind = 'init'
+        else:
+            anchor = entries[i - 1]
+            x, P, result, _, exact = self._gated_update(
+                anchor.x, anchor.P, anchor.stamp_ns, stamp_ns, z, R)
+            u = None
+            kind = 'update'
+        rebuilt = entries[:i] + [Entry(stamp_ns, z, R, self.config.model, x, P, kind)]
+        try:
+            # entries[i:] is never empty here: the newest fused stamp is later.
+            rebuilt, x, P, u = replay(rebuilt, entries[i:], u, self.controls)
+            predicted = self._predict_ahead(x, P, u)
+        except NUMERICAL_ERRORS as error:
+            self._reject_update('numerical', f'replay failed: {error}')
+        self.history.replace(rebuilt)
+        self.x, self.P = x, P
+        self._after_fusion()
+        self.counters.out_of_sequence += 1
+        self.counters.provisional += result is not None and not exact
+        return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
+                          replayed=len(entries) - i)
+
+    def _predict_ahead(self, x: np.ndarray, P: np.ndarray, u=None
+                       ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the state horizon_s after (x, P), holding the control u."""
+        predict = self.config.predict_ahead
+        if self.controls is None:
+            return predict(x, P, self.config.horizon_s)
+        return predict(x, P, self.config.horizon_s, u)
+
+    def _commit(self, stamp_ns: int, x: np.ndarray, P: np.ndarray, kind: str,
+                z: np.ndarray, R: np.ndarray) -> None:
+        """Make (x, P) at stamp_ns the newest state and keep it for replay."""
+        self.x, self.P, self.last_stamp_ns = x, P, stamp_ns
+        self.history.commit(Entry(stamp_ns, z, R, self.config.model, x, P, kind))
+        self._after_fusion()
+        if self.controls is not None:
+            self._prune_controls()
+
+    def _after_fusion(self) -> None:
+        """Count a fused measurement; it ends any run of outliers or stale stamps."""
+        self.counters.fused += 1
+        self.consecutive_outliers = 0
+        self.stale_streak = 0
+
+    def _step(self, stamp_ns: int, x: np.ndarray, P: np.ndarray,
+              result: Optional[UpdateResult], predicted, measurement_stamp_ns: int,
+              replayed: int = 0) -> EstimateStep:
+        """Return the public EstimateStep (copies of the kept arrays)."""
+        return EstimateStep(stamp_ns, x.copy(), P.copy(), result,
+                            stamp_ns + self.config.horizon_ns, predicted[0], predicted[1],
+                            measurement_stamp_ns, replayed)

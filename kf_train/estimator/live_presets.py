@@ -1,0 +1,131 @@
+"""
+Which presets the live estimator runs, and what a preset contributes to its settings.
+
+A preset is named (a shipped one) or given as the path of a YAML file; files are read
+again only when they change. :func:`resolve_preset` raises ``ValueError`` naming
+``preset`` for anything the live estimator cannot run (:func:`check_live_preset`).
+"""
+
+import os
+from typing import Dict, Optional, Sequence, Tuple
+
+from kf_train.filters import as_covariance, as_vector
+from kf_train.presets import load_preset, load_preset_file, Preset, PRESET_NAMES
+import numpy as np
+
+LIVE_STATES = (('position', 'velocity'), ('position',))
+"""State names a live preset may have: 1-D constant velocity, or position alone."""
+LIVE_MEASUREMENTS = (('position',), ('position', 'velocity'))
+"""Measurement names a live preset may have."""
+LIVE_CONTROLS = ((), ('acceleration',), ('velocity',))
+"""Control names a live preset may have (at most one: acceleration or velocity)."""
+LIVE_PRESETS = ('train', 'car', 'car-exact', 'robot', 'robot-exact', 'cv-position',
+                'cv-position-velocity')
+"""The shipped presets the live estimator runs (range-bearing is 2-D: offline only)."""
+
+_PRESET_CACHE: Dict[Tuple[str, int], Preset] = {}
+
+
+def covariance_from_list(name: str, values: Sequence[float], dim: int) -> np.ndarray:
+    """Return a covariance from its diagonal (dim values) or row-major entries (dim²)."""
+    flat = as_vector(name, values)
+    if flat.shape[0] == dim:
+        return as_covariance(name, np.diag(flat), dim)
+    if flat.shape[0] == dim * dim:
+        return as_covariance(name, flat.reshape(dim, dim), dim)
+    raise ValueError(
+        f'{name} must have {dim} (diagonal) or {dim * dim} (full) entries, '
+        f'got {flat.shape[0]}')
+
+
+def covariance_to_list(P: np.ndarray) -> Tuple[float, ...]:
+    """Return a covariance as covariance_from_list takes it: the diagonal if P is diagonal."""
+    P = np.asarray(P, dtype=float)
+    if np.count_nonzero(P - np.diag(np.diag(P))) == 0:
+        return tuple(float(v) for v in np.diag(P))
+    return tuple(float(v) for v in P.ravel())
+
+
+def resolve_preset(spec: str) -> Preset:
+    """
+    Return the preset ``spec`` names: a shipped one, or a YAML file (a path).
+
+    A value ending in .yaml/.yml or containing a path separator is a file. Files are
+    read again only when they change. Raises ValueError naming ``preset``.
+    """
+    if not isinstance(spec, str) or not spec:
+        raise ValueError(f'preset must be a preset name or a YAML file, got {spec!r}')
+    is_file = spec.endswith(('.yaml', '.yml')) or os.sep in spec or '/' in spec
+    if not is_file and spec not in PRESET_NAMES:
+        raise ValueError(f"preset must be one of {', '.join(LIVE_PRESETS)} or the path of a "
+                         f'preset YAML file, got {spec!r}')
+    try:
+        key = (spec, os.stat(spec).st_mtime_ns if is_file else 0)
+    except OSError as error:
+        raise ValueError(f'preset must be a readable file: {spec}: {error.strerror}') from None
+    if key not in _PRESET_CACHE:
+        try:
+            preset = load_preset_file(spec) if is_file else load_preset(spec)
+        except ValueError as error:
+            raise ValueError(f'preset must be a valid preset file: {error}') from None
+        check_live_preset(preset)
+        if len(_PRESET_CACHE) > 32:
+            _PRESET_CACHE.clear()
+        _PRESET_CACHE[key] = preset
+    return _PRESET_CACHE[key]
+
+
+def check_live_preset(preset: Preset) -> None:
+    """
+    Raise ValueError unless the live estimator can run ``preset``.
+
+    It needs a linear model of a 1-D position (states [position, velocity] or
+    [position]), measuring the position (and optionally the velocity), with at most
+    one control named acceleration [m/s²] or velocity [m/s], and with process noise
+    that does not depend on the dt's history (any preset file qualifies).
+    """
+    problems = []
+    if not preset.linear:
+        problems.append('its measurement model is not linear')
+    if preset.state_names not in LIVE_STATES:
+        problems.append(f'its states are {list(preset.state_names)}, not [position, '
+                        'velocity] or [position]')
+    if preset.measurement_names not in LIVE_MEASUREMENTS:
+        problems.append(f'it measures {list(preset.measurement_names)}, not [position] or '
+                        '[position, velocity]')
+    if preset.control_names not in LIVE_CONTROLS:
+        problems.append(f'its controls are {list(preset.control_names)}, not none, '
+                        '[acceleration] or [velocity]')
+    if problems:
+        raise ValueError(f'preset must be a 1-D preset for the live estimator; '
+                         f'{preset.name!r} cannot run live: {"; ".join(problems)} '
+                         '(use kf-train replay for it)')
+
+
+def preset_defaults(spec: str) -> Dict[str, object]:
+    """Return the settings a preset supplies: initial state and covariance, period, horizon."""
+    preset = resolve_preset(spec)
+    return {
+        'initial_state': tuple(float(v) for v in preset.initial_state),
+        'initial_covariance': covariance_to_list(preset.initial_covariance),
+        'nominal_period_s': float(preset.nominal_period_s),
+        'horizon_s': float(preset.horizon_s or 0.0),
+    }
+
+
+def is_constant_velocity(preset: Preset) -> bool:
+    """Return whether the preset's states are [position, velocity] with F = [[1, dt], [0, 1]]."""
+    return (preset.state_names == ('position', 'velocity')
+            and np.array_equal(preset.dynamics.A, [[0.0, 1.0], [0.0, 0.0]]))
+
+
+def measured_states(preset: Preset) -> Optional[Tuple[int, ...]]:
+    """Return, per measurement, the state it measures (H a selection), or None."""
+    H = preset.model.H
+    indices = []
+    for row in H:
+        hits = np.flatnonzero(row)
+        if hits.size != 1 or row[hits[0]] != 1.0:
+            return None
+        indices.append(int(hits[0]))
+    return tuple(indices) if len(set(indices)) == len(indices) else None

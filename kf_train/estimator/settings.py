@@ -1,0 +1,247 @@
+"""
+The estimator's settings (:class:`EstimatorSettings`) and what is derived from them.
+
+:func:`configure` turns validated settings into a :class:`Configuration`: the preset,
+the filter's pure model (:mod:`kf_train.estimator.adapters`), the initial estimate
+and every duration in nanoseconds. A running estimator swaps the whole configuration
+at once, so a failed reconfiguration changes nothing.
+"""
+
+from dataclasses import dataclass, replace
+from typing import Callable, Dict, NamedTuple, Optional, Tuple
+
+from kf_train.estimator.adapters import make_model
+from kf_train.estimator.live_presets import (
+    covariance_from_list, is_constant_velocity, measured_states, preset_defaults,
+    resolve_preset)
+from kf_train.filters import (
+    as_finite_array, as_vector, chi2_quantile, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
+    DEFAULT_PARTICLES, DEFAULT_RESAMPLE_THRESHOLD, FILTER_KINDS, seconds_to_ns)
+from kf_train.presets import Preset
+import numpy as np
+
+INITIALIZATIONS = ('first_measurement', 'prior')
+
+# Ranges shared with the node's parameter descriptors.
+GATE_PROBABILITY_RANGE = (0.5, 1.0)
+HISTORY_S_RANGE = (0.0, 60.0)
+MAX_CONSECUTIVE_OUTLIERS_RANGE = (1, 1_000_000)
+RESTART_AFTER_STALE_RANGE = (2, 1_000_000)
+MAX_FUTURE_S_RANGE = (0.0, 1e9)
+UKF_ALPHA_RANGE = (1e-4, 10.0)
+UKF_BETA_RANGE = (0.0, 100.0)
+UKF_KAPPA_RANGE = (-0.999, 100.0)  # n + kappa > 0 for every live preset (n >= 1)
+PF_PARTICLES_RANGE = (1, 1_000_000)
+PF_SEED_RANGE = (0, 2 ** 31 - 1)
+PF_RESAMPLE_THRESHOLD_RANGE = (0.0, 1.0)
+FILTER_SETTINGS = ('filter', 'ukf_alpha', 'ukf_beta', 'ukf_kappa', 'pf_particles', 'pf_seed',
+                   'pf_resample_threshold')
+"""Settings fixed for an estimator's life (like the preset): they choose the filter."""
+
+
+def _check_float_range(name: str, value, low: float, high: float) -> float:
+    """Return value as a float, or raise naming ``name`` and the range [low, high]."""
+    array = as_finite_array(name, value)
+    if array.ndim != 0 or not low <= float(array) <= high:
+        raise ValueError(f'{name} must be a number in [{low:g}, {high:g}], got {value!r}')
+    return float(array)
+
+
+def _check_int_range(name: str, value, low: int, high: int) -> int:
+    """Return value as an int, or raise naming ``name`` and the range [low, high]."""
+    if (not isinstance(value, (int, np.integer)) or isinstance(value, bool)
+            or not low <= value <= high):
+        raise ValueError(f'{name} must be an integer in [{low}, {high}], got {value!r}')
+    return int(value)
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """
+    Everything that configures a :class:`StreamEstimator`, with seed-000 defaults.
+
+    The defaults reproduce the seed exactly: no gate and no out-of-sequence fusion.
+    The estimator node turns on out-of-sequence fusion by default (see its
+    parameters). ``initial_state``, ``initial_covariance``, ``horizon_s`` and
+    ``nominal_period_s`` None take the preset's values.
+    """
+
+    initial_state: Optional[Tuple[float, ...]] = None
+    """The preset's states [position m, velocity m/s] (or [position m]); None: the
+    preset's (train: [0, 5], half the true speed as in seed 000)."""
+    initial_covariance: Optional[Tuple[float, ...]] = None
+    """Diagonal (n values) or row-major full matrix (n² values); None: the preset's."""
+    process_noise_density: float = 0.0
+    """White-noise acceleration density q [m²/s³], Q(dt) = q·[[dt³/3, dt²/2], [dt²/2, dt]],
+    added to the preset's own process noise (train's is 0, as in seed 000). Only for
+    presets with [position, velocity] states."""
+    measurement_variance: float = 0.0
+    """R of the position [m²] overriding the message's variance; 0 uses the message's."""
+    horizon_s: Optional[float] = None
+    """How far ahead the prediction is [s]; None: the preset's (0 when it has none)."""
+    initialization: str = 'first_measurement'
+    nominal_period_s: Optional[float] = None
+    """Prior mode: how long before the first stamp the prior holds; None: the preset's."""
+    first_velocity_std_mps: float = 100.0
+    """first_measurement mode: standard deviation of the initial velocity."""
+    history_s: float = 0.0
+    """Out-of-sequence window [s]: older measurements are fused by replay; 0 = off."""
+    gate_probability: float = 1.0
+    """χ² gate on the NIS: reject when P(χ²(m) <= NIS) exceeds this; 1 = no gate."""
+    max_consecutive_outliers: int = 10
+    """Consecutive gate (or numerical) rejections after which the filter resets."""
+    restart_after_stale: int = 3
+    """Consecutive stale measurements after which the stream counts as restarted."""
+    max_future_s: float = 1.0
+    """How far [s] a stamp may lie ahead of ``now_ns`` (when process() is given it)."""
+    expected_frame_id: str = ''
+    """The measurements' required frame_id; '' accepts any."""
+    preset: str = 'train'
+    """The filter: a name from LIVE_PRESETS or the path of a preset YAML file."""
+    measurement_velocity_variance: float = 0.0
+    """R of a measured velocity [m²/s²] overriding the message's; 0 uses the message's."""
+    filter: str = 'kf'  # noqa: A003 (the node parameter's name)
+    """The filter kind (:data:`kf_train.filters.FILTER_KINDS`): ``kf`` (exact, the
+    default), ``ekf`` (the same on these linear presets), ``ukf`` or ``pf``."""
+    ukf_alpha: float = DEFAULT_ALPHA
+    """UKF sigma-point spread α > 0."""
+    ukf_beta: float = DEFAULT_BETA
+    """UKF prior-knowledge weight β (2 is optimal for a Gaussian)."""
+    ukf_kappa: float = DEFAULT_KAPPA
+    """UKF secondary scaling κ (n + κ > 0)."""
+    pf_particles: int = DEFAULT_PARTICLES
+    """Particle filter: number of particles."""
+    pf_seed: int = 0
+    """Particle filter: seed of its generator (restarted from it at every initialisation)."""
+    pf_resample_threshold: float = DEFAULT_RESAMPLE_THRESHOLD
+    """Particle filter: resample when the effective sample size < this · pf_particles."""
+
+    def resolved(self) -> 'EstimatorSettings':
+        """Return a copy with the preset's values where a field is None (see preset_defaults)."""
+        defaults = preset_defaults(self.preset)
+        return replace(self, **{name: value for name, value in defaults.items()
+                                if getattr(self, name) is None})
+
+    def validated(self) -> 'EstimatorSettings':
+        """Return self after checking every field; raise ValueError naming the field."""
+        preset = resolve_preset(self.preset)
+        n = preset.dim_x
+        if self.initial_state is not None:
+            as_vector('initial_state', self.initial_state, n)
+        if self.initial_covariance is not None:
+            covariance_from_list('initial_covariance', self.initial_covariance, n)
+        for name in ('process_noise_density', 'measurement_variance', 'horizon_s',
+                     'nominal_period_s', 'first_velocity_std_mps',
+                     'measurement_velocity_variance'):
+            if getattr(self, name) is None and name in ('horizon_s', 'nominal_period_s'):
+                continue
+            value = as_finite_array(name, getattr(self, name))
+            if value.ndim != 0 or float(value) < 0.0:
+                raise ValueError(f'{name} must be a finite number >= 0, got {value}')
+        if self.nominal_period_s is not None and self.nominal_period_s <= 0.0:
+            raise ValueError(f'nominal_period_s must be > 0, got {self.nominal_period_s}')
+        if self.first_velocity_std_mps <= 0.0:
+            raise ValueError(
+                f'first_velocity_std_mps must be > 0, got {self.first_velocity_std_mps}')
+        self._validate_model(preset)
+        self._validate_ranges()
+        return self
+
+    def _validate_model(self, preset: Preset) -> None:
+        """Check the settings that must suit the preset's model."""
+        if self.process_noise_density > 0.0 and not is_constant_velocity(preset):
+            raise ValueError(
+                f'process_noise_density must be 0 for preset {preset.name!r}: a white-noise '
+                'acceleration needs [position, velocity] states (edit process_noise in '
+                'a preset file instead)')
+        if self.initialization not in INITIALIZATIONS:
+            raise ValueError(
+                f'initialization must be one of {INITIALIZATIONS}, '
+                f'got {self.initialization!r}')
+        if self.initialization == 'first_measurement' and measured_states(preset) is None:
+            raise ValueError(
+                f'initialization must be prior for preset {preset.name!r}: first_measurement '
+                'needs measurements that are states (H selecting them)')
+
+    def _validate_ranges(self) -> None:
+        """Check the settings that have a range, a type or a set of values."""
+        _check_float_range('history_s', self.history_s, *HISTORY_S_RANGE)
+        _check_float_range('gate_probability', self.gate_probability,
+                           *GATE_PROBABILITY_RANGE)
+        _check_float_range('max_future_s', self.max_future_s, *MAX_FUTURE_S_RANGE)
+        _check_int_range('max_consecutive_outliers', self.max_consecutive_outliers,
+                         *MAX_CONSECUTIVE_OUTLIERS_RANGE)
+        _check_int_range('restart_after_stale', self.restart_after_stale,
+                         *RESTART_AFTER_STALE_RANGE)
+        if not isinstance(self.expected_frame_id, str):
+            raise ValueError(
+                f'expected_frame_id must be a string, got {self.expected_frame_id!r}')
+        if self.filter not in FILTER_KINDS:
+            raise ValueError(f"filter must be one of {', '.join(FILTER_KINDS)}, "
+                             f'got {self.filter!r}')
+        _check_float_range('ukf_alpha', self.ukf_alpha, *UKF_ALPHA_RANGE)
+        _check_float_range('ukf_beta', self.ukf_beta, *UKF_BETA_RANGE)
+        _check_float_range('ukf_kappa', self.ukf_kappa, *UKF_KAPPA_RANGE)
+        _check_int_range('pf_particles', self.pf_particles, *PF_PARTICLES_RANGE)
+        _check_int_range('pf_seed', self.pf_seed, *PF_SEED_RANGE)
+        _check_float_range('pf_resample_threshold', self.pf_resample_threshold,
+                           *PF_RESAMPLE_THRESHOLD_RANGE)
+
+
+class Configuration(NamedTuple):
+    """Validated settings and everything derived from them, installed at once."""
+
+    settings: EstimatorSettings
+    preset: Preset
+    model: object
+    """The filter's pure ``predict(x, P, dt, u)``/``update(x, P, z, R)`` model."""
+    predict_ahead: Callable
+    """The model's prediction ahead (the particle filter's without draws)."""
+    initial_state: np.ndarray
+    initial_covariance: np.ndarray
+    nominal_period_s: float
+    horizon_s: float
+    selector: Optional[Tuple[int, ...]]
+    """The state each measurement measures (:func:`measured_states`)."""
+    history_ns: int
+    max_future_ns: int
+    horizon_ns: int
+    nominal_ns: int
+    gate_threshold: float
+
+
+def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings],
+              particle_states: Dict[int, object], fast: bool) -> Configuration:
+    """
+    Return the configuration of validated ``settings``; raise ValueError, changing nothing.
+
+    ``previous`` (the running estimator's settings, or None) must have the same
+    preset and filter settings: those fix the filter for an estimator's life.
+    """
+    if previous is not None:
+        for name in ('preset',) + FILTER_SETTINGS:
+            old, new = getattr(previous, name), getattr(settings, name)
+            if new != old:
+                raise ValueError(f'{name} cannot change on a running estimator '
+                                 f'({old!r} -> {new!r}); create a new one')
+    preset = resolve_preset(settings.preset)
+    model = make_model(settings, preset, particle_states, fast)
+    initial_state = as_vector('initial_state', preset.initial_state
+                              if settings.initial_state is None
+                              else settings.initial_state, preset.dim_x)
+    initial_covariance = (preset.initial_covariance if settings.initial_covariance is None
+                          else covariance_from_list('initial_covariance',
+                                                    settings.initial_covariance,
+                                                    preset.dim_x))
+    nominal_period_s = float(preset.nominal_period_s if settings.nominal_period_s is None
+                             else settings.nominal_period_s)
+    horizon_s = float((preset.horizon_s or 0.0) if settings.horizon_s is None
+                      else settings.horizon_s)
+    return Configuration(
+        settings, preset, model,
+        # The particle filter predicts ahead with exact moments (no draws); others predict.
+        getattr(model, 'predict_ahead', model.predict),
+        initial_state, initial_covariance, nominal_period_s, horizon_s,
+        measured_states(preset), seconds_to_ns(settings.history_s),
+        seconds_to_ns(settings.max_future_s), seconds_to_ns(horizon_s),
+        seconds_to_ns(nominal_period_s), chi2_quantile(settings.gate_probability, model.dim_z))

@@ -1,0 +1,141 @@
+"""
+The ROS side of ``kf-train demo``: its probe node, parameter calls, and their context.
+
+:class:`Probe` records every message on the simulator's and the estimator's topics;
+:func:`fetch_parameters` and :func:`set_parameter` talk to a node's parameter
+services; :func:`start_probe` brings a probe up in a context of its own. The demo
+itself (processes, checks, report) is :mod:`kf_train.cli.demo`.
+"""
+
+import time
+from typing import Dict, List, Optional, Sequence, Tuple
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import Odometry
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+from rclpy.qos import QoSProfile
+from rclpy.signals import SignalHandlerOptions
+
+__all__ = ['Context', 'ExternalShutdownException', 'fetch_parameters', 'Probe', 'PROBE_DEPTH',
+           'set_parameter', 'start_probe', 'TOPICS']
+
+PROBE_DEPTH = 1000
+"""Keep-last depth of the probe's subscriptions: never the bottleneck."""
+
+
+TOPICS = {
+    'measurement': PoseWithCovarianceStamped,
+    'ground_truth': Odometry,
+    'estimate': Odometry,
+    'prediction': Odometry,
+}
+"""The topics the probe records, with their message types."""
+
+
+class Probe(Node):
+    """Records every message on the simulator's and the estimator's topics."""
+
+    def __init__(self, *, context: Optional[Context] = None,
+                 node_name: str = 'kf_train_probe', namespace: str = '',
+                 depth: int = PROBE_DEPTH, subscribe_measurement: bool = True):
+        """
+        Subscribe to ground_truth, estimate, prediction and, unless told not to, measurement.
+
+        The topics are relative: in ``namespace`` they are the nodes' of that namespace.
+        Subscribing to ``measurement`` late (:meth:`subscribe_measurement`) lets a
+        simulator with ``min_subscribers`` wait until the probe listens everywhere.
+        """
+        super().__init__(node_name, context=context, namespace=namespace)
+        self.qos = QoSProfile(depth=depth)
+        self.received: Dict[str, List] = {topic: [] for topic in TOPICS}
+        self._topic_subscriptions = {}
+        for topic in ('ground_truth', 'estimate', 'prediction'):
+            self._subscribe(topic)
+        if subscribe_measurement:
+            self.subscribe_measurement()
+
+    def _subscribe(self, topic: str) -> None:
+        """Record ``topic`` into ``self.received[topic]``."""
+        self._topic_subscriptions[topic] = self.create_subscription(
+            TOPICS[topic], topic, self.received[topic].append, self.qos)
+
+    def subscribe_measurement(self) -> None:
+        """Start recording ``measurement`` (idempotent)."""
+        if 'measurement' not in self._topic_subscriptions:
+            self._subscribe('measurement')
+
+    def counts(self) -> Dict[str, int]:
+        """Return how many messages each topic has delivered so far."""
+        return {topic: len(msgs) for topic, msgs in self.received.items()}
+
+    def sees_nodes(self) -> bool:
+        """Return whether the graph shows both nodes' publishers and the estimator's input."""
+        return (all(self.count_publishers(topic) >= 1 for topic in TOPICS)
+                and self.count_subscribers('measurement') >= 1)
+
+
+def start_probe(context: Context, domain_id: int) -> Tuple[SingleThreadedExecutor, Probe]:
+    """
+    Initialise ``context`` in ``domain_id`` and return (executor, probe) spinning in it.
+
+    The probe does not record ``measurement`` yet (:meth:`Probe.subscribe_measurement`).
+    rclpy's signal handlers stay off: the demo handles SIGINT and SIGTERM itself.
+    """
+    rclpy.init(context=context, domain_id=domain_id,
+               signal_handler_options=SignalHandlerOptions.NO)
+    probe = Probe(context=context, subscribe_measurement=False)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(probe)
+    return executor, probe
+
+
+def fetch_parameters(executor, node: Node, target: str, names: Sequence[str],
+                     timeout_s: float, attempt_s: float = 2.0) -> Optional[Dict[str, object]]:
+    """
+    Return parameters of node ``target`` by a service round trip, or None after timeout_s.
+
+    A call is repeated every ``attempt_s``: one made while discovery is still going on
+    may be lost. Undeclared parameters come back as None.
+    """
+    names = list(names)
+    response = _call_until_answered(
+        executor, AsyncParameterClient(node, target),
+        lambda client: client.get_parameters(names), timeout_s, attempt_s)
+    if response is None:
+        return None
+    return {name: parameter_value_to_python(value)
+            for name, value in zip(names, response.values)}
+
+
+def set_parameter(executor, node: Node, target: str, name: str, value,
+                  timeout_s: float, attempt_s: float = 2.0) -> Optional[str]:
+    """Set one parameter of node ``target``; return None on success, else the reason."""
+    response = _call_until_answered(
+        executor, AsyncParameterClient(node, target),
+        lambda client: client.set_parameters([Parameter(name, value=value)]),
+        timeout_s, attempt_s)
+    if response is None:
+        return f'{target} did not answer within {timeout_s:g} s'
+    result = response.results[0]
+    return None if result.successful else result.reason
+
+
+def _call_until_answered(executor, client: AsyncParameterClient, call, timeout_s: float,
+                         attempt_s: float):
+    """Return the response of ``call(client)``, repeated every attempt_s; None on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if not client.wait_for_services(
+                timeout_sec=max(0.0, min(attempt_s, deadline - time.monotonic()))):
+            continue
+        future = call(client)
+        executor.spin_until_future_complete(
+            future, timeout_sec=max(0.0, min(attempt_s, deadline - time.monotonic())))
+        if future.done() and future.result() is not None:
+            return future.result()
+    return None

@@ -1,0 +1,196 @@
+"""
+The package's floors (README, "The floors"), checked on the source with ast.
+
+1. ``filters``  2. ``presets``  3. ``estimator``, ``batch``, ``sim``, ``io``  4. ``ros``
+5. ``cli``: a module imports only from its own package or from a lower floor; the four
+packages of floor 3 do not import each other. ``core`` is the old API's re-export: it
+may import floors 1-3, and nothing in kf_train imports it.
+Only ``ros`` imports rclpy or message packages; only ``cli`` imports argparse,
+matplotlib or subprocess (``benchmarks/`` is outside the package). Packages talk
+through their ``__init__``: an import from another package names the package itself
+(``from kf_train.filters import X``), and X is public (no leading underscore) and in
+that package's ``__all__``. The reference libraries (filterpy, pykalman, simdkalman)
+are oracles of the tests and the benchmark only: kf_train never imports them.
+"""
+
+import ast
+import os
+from typing import Dict, List, Optional
+
+import pytest
+
+pytestmark = pytest.mark.linter
+
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+PACKAGE_DIR = os.path.join(REPO, 'kf_train')
+FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
+          'ros': 4, 'cli': 5}
+COMPATIBILITY = 'core'
+ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
+            'rcl_interfaces')
+CLI_ONLY = ('argparse', 'matplotlib', 'subprocess')
+ORACLES = ('filterpy', 'pykalman', 'simdkalman', 'scipy')
+
+
+def _is_ros(module: str) -> bool:
+    """Return whether ``module`` is rclpy or a ROS message package."""
+    top = module.split('.')[0]
+    return top in ROS_ONLY or top.endswith(('_msgs', '_srvs', '_interfaces'))
+
+
+def _imports(tree: ast.AST):
+    """Yield (module, names or None, line) of every import, nested ones included."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield alias.name, None, node.lineno
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            yield node.module, [alias.name for alias in node.names], node.lineno
+
+
+def exported_names(package_init_source: str) -> Optional[List[str]]:
+    """Return the ``__all__`` a package's ``__init__`` assigns, or None."""
+    for node in ast.parse(package_init_source).body:
+        if isinstance(node, ast.Assign) and any(
+                isinstance(target, ast.Name) and target.id == '__all__'
+                for target in node.targets):
+            return [ast.literal_eval(element) for element in node.value.elts]
+    return None
+
+
+def violations(package: Optional[str], source: str, exports: Dict[str, List[str]],
+               where: str = '<source>') -> List[str]:
+    """
+    Return every rule that ``source``, a module of kf_train/``package``, breaks.
+
+    ``package`` is None for a module directly in kf_train/; ``exports`` maps each
+    package to its ``__all__``.
+    """
+    found = []
+    for module, names, line in _imports(ast.parse(source)):
+        at = f'{where}:{line}: {module}'
+        top = module.split('.')[0]
+        if _is_ros(module) and package != 'ros':
+            found.append(f'{at}: only kf_train.ros imports rclpy and message packages')
+        if top in CLI_ONLY and package != 'cli':
+            found.append(f'{at}: only kf_train.cli imports {top}')
+        if top in ORACLES:
+            found.append(f'{at}: {top} is a test and benchmark oracle, not a dependency')
+        parts = module.split('.')
+        if parts[0] != 'kf_train' or len(parts) == 1:
+            continue
+        target = parts[1]
+        if target == package:
+            continue
+        if target == COMPATIBILITY:
+            found.append(f'{at}: kf_train.core is the old API for users, not for kf_train')
+            continue
+        if target not in FLOORS:
+            found.append(f'{at}: kf_train.{target} is not a floor')
+            continue
+        own = 3.5 if package == COMPATIBILITY else FLOORS.get(package, 0)
+        if FLOORS[target] >= own:
+            found.append(f'{at}: kf_train.{package} (floor {own}) may not import '
+                         f'kf_train.{target} (floor {FLOORS[target]}): imports point down')
+        if len(parts) > 2 or names is None:
+            found.append(f'{at}: import from the package, "from kf_train.{target} import '
+                         '...", not from its modules')
+            continue
+        for name in names:
+            if name.startswith('_'):
+                found.append(f'{at}: {name} is private to kf_train.{target}')
+            elif name not in exports.get(target, ()):
+                found.append(f'{at}: {name} is not in kf_train.{target}.__all__')
+    return found
+
+
+def _package_sources():
+    """Yield (package or None, path, source) of every module of kf_train."""
+    for directory, _, files in sorted(os.walk(PACKAGE_DIR)):
+        relative = os.path.relpath(directory, PACKAGE_DIR)
+        package = None if relative == '.' else relative.split(os.sep)[0]
+        for name in sorted(files):
+            if name.endswith('.py'):
+                path = os.path.join(directory, name)
+                with open(path, encoding='utf-8') as stream:
+                    yield package, path, stream.read()
+
+
+def _exports() -> Dict[str, List[str]]:
+    """Return every package's ``__all__`` (packages without one export nothing)."""
+    exports = {}
+    for package in list(FLOORS) + [COMPATIBILITY]:
+        with open(os.path.join(PACKAGE_DIR, package, '__init__.py'), encoding='utf-8') as stream:
+            exports[package] = exported_names(stream.read()) or []
+    return exports
+
+
+def test_the_floors_are_the_packages():
+    """kf_train holds exactly the floors and core; every package exports its API."""
+    entries = sorted(entry for entry in os.listdir(PACKAGE_DIR)
+                     if os.path.isdir(os.path.join(PACKAGE_DIR, entry))
+                     and not entry.startswith(('_', '.')))
+    assert entries == sorted(list(FLOORS) + [COMPATIBILITY])
+    assert [name for name in os.listdir(PACKAGE_DIR) if name.endswith('.py')] == [
+        '__init__.py']
+    exports = _exports()
+    for package, names in exports.items():
+        assert names, f'kf_train.{package}/__init__.py has no __all__'
+        assert not [name for name in names if name.startswith('_')], package
+
+
+def test_every_module_keeps_to_its_floor():
+    """No import in kf_train breaks a rule of the floors."""
+    exports = _exports()
+    found = []
+    for package, path, source in _package_sources():
+        found += violations(package, source, exports, os.path.relpath(path, PACKAGE_DIR))
+    assert not found, '\n'.join(found)
+
+
+def test_every_exported_name_exists():
+    """Each name in a package's __all__ is importable from it (the rules rely on it)."""
+    import importlib
+    for package, names in _exports().items():
+        if package in ('ros', 'cli'):
+            continue  # imported lazily or with rclpy: their modules are tested apart
+        module = importlib.import_module(f'kf_train.{package}')
+        missing = [name for name in names if not hasattr(module, name)]
+        assert not missing, f'kf_train.{package}.__all__ names missing: {missing}'
+
+
+EXPORTS = {'filters': ['predict', 'kalman'], 'presets': ['load_preset'],
+           'estimator': ['StreamEstimator'], 'sim': ['TrainSimulation']}
+
+
+@pytest.mark.parametrize('package, source, rule', [
+    ('filters', 'from kf_train.presets import load_preset\n', 'imports point down'),
+    ('estimator', 'from kf_train.sim import TrainSimulation\n', 'imports point down'),
+    ('presets', 'from kf_train.filters.kalman import predict\n', 'not from its modules'),
+    ('presets', 'import kf_train.filters\n', 'not from its modules'),
+    ('presets', 'from kf_train.filters import _private\n', 'private'),
+    ('presets', 'from kf_train.filters import secret\n', 'not in kf_train.filters.__all__'),
+    ('sim', 'def f():\n    import rclpy\n', 'only kf_train.ros imports rclpy'),
+    ('cli', 'from nav_msgs.msg import Odometry\n', 'only kf_train.ros imports rclpy'),
+    ('ros', 'import argparse\n', 'only kf_train.cli imports argparse'),
+    ('filters', 'from matplotlib.figure import Figure\n', 'only kf_train.cli imports'),
+    ('batch', 'import subprocess\n', 'only kf_train.cli imports subprocess'),
+    ('batch', 'import filterpy.kalman\n', 'oracle'),
+    ('cli', 'from kf_train.core import TrainEstimator\n', 'old API'),
+    (None, 'from kf_train.estimator import StreamEstimator\n', 'imports point down'),
+])
+def test_the_checker_finds_each_kind_of_violation(package, source, rule):
+    """The rules are not vacuous: a module breaking one is reported, with the rule."""
+    found = violations(package, source, EXPORTS)
+    assert found and all(rule in message for message in found[:1]), found
+
+
+@pytest.mark.parametrize('package, source', [
+    ('cli', 'from kf_train.filters import kalman, predict\nimport argparse\n'),
+    ('ros', 'import rclpy\nfrom kf_train.estimator import StreamEstimator\n'),
+    ('estimator', 'from kf_train.estimator.contract import Rejected\n'),
+    ('core', 'from kf_train.sim import TrainSimulation\n'),
+])
+def test_the_checker_passes_what_the_rules_allow(package, source):
+    """Downward package imports, the own package's modules and allowed libraries pass."""
+    assert violations(package, source, EXPORTS) == []
