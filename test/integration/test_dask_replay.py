@@ -8,7 +8,7 @@ partition: the results must be equal bit for bit, not just close.
 
 import os
 
-from kf_train.batch.partition import filter_partition
+from kf_train.batch import filter_partition
 from kf_train.cli.replay import main
 import numpy as np
 import pytest

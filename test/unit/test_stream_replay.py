@@ -16,15 +16,13 @@ with a margin of more than 1000 over the largest difference seen (~1e-12).
 
 import os
 
-from kf_train.batch import chunked
-from kf_train.batch.series import group_rows, run_series
-from kf_train.batch.smoother import smooth_series
-from kf_train.batch.stream import filter_table, StreamingReplay
+from kf_train.batch import (
+    filter_table, group_rows, Rows, run_series, smooth_series, StreamingReplay)
 from kf_train.cli import replay_stream
 from kf_train.cli.replay import main, output_columns, run_preset, smooth_bank
-from kf_train.filters.family import FilterOptions, make_filter
+from kf_train.filters import FilterOptions, make_filter
 from kf_train.io import columnar
-from kf_train.presets.loader import load_preset
+from kf_train.presets import load_preset
 import numpy as np
 import pytest
 
@@ -172,7 +170,7 @@ def test_how_the_input_is_cut_changes_nothing(objects):
             blocks = []
             for start in range(0, t.shape[0], piece):
                 cut = slice(start, start + piece)
-                blocks += engine.push(chunked.Rows(t[cut], z[cut], u[cut],
+                blocks += engine.push(Rows(t[cut], z[cut], u[cut],
                                                    None if ids is None else ids[cut]))
             blocks += engine.finish()
         return [np.concatenate([b.columns[j] for b in blocks]) for j in range(len(
