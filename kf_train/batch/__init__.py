@@ -15,13 +15,13 @@ from kf_train.batch.affine import affine_recursion
 from kf_train.batch.bank import (
     bank_time_steps, group_rows, Groups, LOCKSTEP_STEP_S, run_bank, SERIES_CALL_S,
     TimeOrderError)
+from kf_train.batch.chunked import (
+    DEFAULT_BLOCK_ROWS, Estimates, output_header, OutputBlock, resolve_horizon, RowError, Rows)
 from kf_train.batch.fleet import DEFAULT_CHUNK_SIZE, FleetState, TrainFleet
 from kf_train.batch.linear import CONVERGED_ULPS, predict_ahead, run_linear_series
+from kf_train.batch.partition import filter_partition, partition_meta
 from kf_train.batch.series import (
     MAX_ABS_TIME_S, run_filter_series, run_series, SeriesError, SeriesResult, time_steps_s)
-from kf_train.batch.chunked import (
-    DEFAULT_BLOCK_ROWS, Estimates, OutputBlock, output_header, resolve_horizon, RowError, Rows)
-from kf_train.batch.partition import filter_partition, partition_meta
 from kf_train.batch.smoother import (
     rts_smooth, smooth_series, SmootherResult, VECTORISED_MAX_STATES)
 from kf_train.batch.stream import filter_table, StreamingReplay

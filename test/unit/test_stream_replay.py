@@ -171,7 +171,7 @@ def test_how_the_input_is_cut_changes_nothing(objects):
             for start in range(0, t.shape[0], piece):
                 cut = slice(start, start + piece)
                 blocks += engine.push(Rows(t[cut], z[cut], u[cut],
-                                                   None if ids is None else ids[cut]))
+                                           None if ids is None else ids[cut]))
             blocks += engine.finish()
         return [np.concatenate([b.columns[j] for b in blocks]) for j in range(len(
             engine.header))]
