@@ -13,7 +13,7 @@ partition, a test), so that every way of running a replay gives the same numbers
 
 import shutil
 import tempfile
-from typing import List, Optional, Sequence
+from typing import Iterator, List, Optional, Sequence
 
 from kf_train.batch.chunked import (
     BlockFilter, DEFAULT_BLOCK_ROWS, estimate_columns, ObjectStates, output_header,
@@ -67,15 +67,20 @@ class StreamingReplay:
             out += self._run(self._take(self.block_rows))
         return out
 
-    def finish(self) -> List[OutputBlock]:
-        """Filter what is left; return the rest of the output (all of it when smoothing)."""
-        out = self._run(self._take(self.pending_rows)) if self.pending_rows else []
+    def finish(self) -> Iterator[OutputBlock]:
+        """
+        Filter what is left; yield the rest of the output (all of it when smoothing).
+
+        When smoothing, the blocks are read back from the spill one at a time as the
+        caller takes them: iterate, do not make a list of them.
+        """
+        yield from self._run(self._take(self.pending_rows)) if self.pending_rows else []
         if self.spill is None:
-            return out
+            return
         self.spill.smooth(self.states.seen.shape[0])
-        return [OutputBlock(first, codes if self.has_codes else None,
-                            estimate_columns(est, smoothed))
-                for first, codes, est, smoothed in self.spill.blocks_out()]
+        for first, codes, est, smoothed in self.spill.blocks_out():
+            yield OutputBlock(first, codes if self.has_codes else None,
+                              estimate_columns(est, smoothed))
 
     def close(self) -> None:
         """Remove the spill files, if any."""
@@ -130,7 +135,7 @@ def filter_table(preset, t, z, u=None, codes: Optional[Sequence[int]] = None, *,
     codes = None if codes is None else np.asarray(codes, dtype=np.int64).reshape(-1)
     with StreamingReplay(preset, horizon_s=horizon_s, t0_s=t0_s, filt=filt, smooth=smooth,
                          block_rows=block_rows) as engine:
-        blocks = engine.push(Rows(t, z, u, codes)) + engine.finish()
+        blocks = engine.push(Rows(t, z, u, codes)) + list(engine.finish())
     width = len(engine.header)
     if not blocks:
         return [np.empty(0) for _ in range(width)]
