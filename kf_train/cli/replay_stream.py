@@ -20,8 +20,10 @@ that replaces it only when complete, so bad input leaves no partial output.
 
 import io
 import os
+import queue
 import re
 import sys
+import threading
 import time
 from typing import Dict, Iterator, List, Optional
 
@@ -252,9 +254,54 @@ def _row_message(source: Source, error: RowError) -> str:
     return f'{at}: {error.reason}'
 
 
+def prefetch(items: Iterator, depth: int = 2) -> Iterator:
+    """
+    Yield from ``items``, produced in a second thread up to ``depth`` ahead.
+
+    polars parses without holding the GIL, so reading the next piece overlaps filtering
+    this one. An exception in the producer is raised here; stopping early (an error on
+    this side) stops the producer at its next piece.
+    """
+    pending: 'queue.Queue' = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        pending.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            pending.put((end, None))
+        except BaseException as error:            # handed to the consuming thread
+            pending.put((end, error))
+
+    thread = threading.Thread(target=produce, name='kf-train-reader', daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, error = pending.get()
+            if error is not None:
+                raise error
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
+
 def _blocks(source: Source, engine: StreamingReplay) -> Iterator[tuple]:
     """Yield the output blocks (columns, codes) of a whole input."""
-    for rows in source.pieces():
+    pieces = source.pieces()
+    if not isinstance(source, CsvSource):            # polars readers: read ahead
+        pieces = prefetch(pieces)
+    for rows in pieces:
         for block in engine.push(rows):
             yield block.columns, block.codes
     for block in engine.finish():
