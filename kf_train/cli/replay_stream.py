@@ -220,7 +220,11 @@ class ParquetSource(Source):
         """Read the schema and find the columns."""
         self.where = 'row'
         header = columnar.parquet_columns(self.path)
-        self.wanted = inmemory._resolve(self.path, header, self.needed)
+        try:
+            self.wanted = inmemory._resolve(self.path, header, self.needed)
+        except inmemory.InputError as error:          # a schema has no line 1
+            raise inmemory.InputError(str(error).replace(
+                f'{self.path} line {inmemory.HEADER_LINE}:', f'{self.path}:', 1)) from None
         self.id_column = ID_COLUMN if ID_COLUMN in header else None
 
     def pieces(self) -> Iterator[Rows]:
