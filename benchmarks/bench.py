@@ -19,6 +19,10 @@ Rows (``--rows``, default all that exist):
    bare rclpy node with the same publishers.
 6. The filter family on the range-bearing seed: µs per update of EKF, UKF, the
    regularised particle filter and the bootstrap one, each as a ratio to the UKF.
+7. Offline at scale: peak RSS of the streamed replay at 10⁶ and 10⁷ rows, CSV and
+   Parquet throughput, 200 000 rows against a plain filterpy script, the fleet beside
+   simdkalman at 10⁵ and 10⁶ filters, and ``--engine dask``.
+8. Live fleet capacity: one estimator per train at 10 Hz, its CPU share and memory.
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -28,8 +32,8 @@ every measurement (a smoke test, not figures to quote).
 This directory is not installed with kf_train (it imports filterpy, a test and
 benchmark oracle): ``make bench`` runs this file, ``kf-train bench`` too from a source
 checkout. Rows 1-3 are in bench_core.py, rows 4-5 in bench_live.py, row 6 in
-bench_filters.py, the child processes in bench_children.py and the helper nodes are
-the node_*.py files.
+bench_filters.py, rows 7-8 in bench_scale.py, the child processes in bench_children.py
+and the helper nodes are the node_*.py files.
 """
 
 import argparse
@@ -44,10 +48,11 @@ from bench_common import header, percentile, Row, table  # noqa: E402, I100
 from bench_core import row_core, row_fleet, row_replay  # noqa: E402
 from bench_filters import row_filters  # noqa: E402
 from bench_live import LIVE_QOS_DEPTH, LIVE_RATES_HZ, row_live, row_startup  # noqa: E402
+from bench_scale import rows_live_fleet, rows_scale  # noqa: E402
 
 __all__ = ['main', 'percentile', 'ROWS']
 
-ROWS = (1, 2, 3, 4, 5, 6)
+ROWS = (1, 2, 3, 4, 5, 6, 7, 8)
 
 
 def _parse(argv: List[str]) -> argparse.Namespace:
@@ -98,7 +103,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                3: lambda: row_fleet(args.quick),
                4: lambda: row_live(args.quick, args.rates, args.qos_depth),
                5: lambda: row_startup(args.quick),
-               6: lambda: row_filters(args.quick)}
+               6: lambda: row_filters(args.quick),
+               7: lambda: rows_scale(args.quick),
+               8: lambda: rows_live_fleet(args.quick)}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()

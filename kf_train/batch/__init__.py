@@ -5,6 +5,9 @@ Floor 3, batch paths: whole series at once, each tested against the row-by-row r
 :func:`run_linear_series` vectorises a linear preset along time; :func:`run_bank`
 filters many objects (rows tagged by id) as a vectorised bank; :class:`TrainFleet`
 steps N train filters at once; :func:`rts_smooth` / :func:`smooth_series` smooth.
+:class:`StreamingReplay` filters a table of any length in fixed blocks (bounded
+memory), :func:`filter_table` the same on arrays, :func:`filter_partition` one Dask
+partition.
 Built on :mod:`kf_train.filters` (and presets passed in) only.
 """
 
@@ -12,15 +15,22 @@ from kf_train.batch.affine import affine_recursion
 from kf_train.batch.bank import (
     bank_time_steps, group_rows, Groups, LOCKSTEP_STEP_S, run_bank, SERIES_CALL_S,
     TimeOrderError)
+from kf_train.batch.chunked import (
+    DEFAULT_BLOCK_ROWS, Estimates, output_header, OutputBlock, resolve_horizon, RowError, Rows)
 from kf_train.batch.fleet import DEFAULT_CHUNK_SIZE, FleetState, TrainFleet
 from kf_train.batch.linear import CONVERGED_ULPS, predict_ahead, run_linear_series
+from kf_train.batch.partition import filter_partition, partition_meta
 from kf_train.batch.series import (
     MAX_ABS_TIME_S, run_filter_series, run_series, SeriesError, SeriesResult, time_steps_s)
 from kf_train.batch.smoother import (
     rts_smooth, smooth_series, SmootherResult, VECTORISED_MAX_STATES)
+from kf_train.batch.stream import filter_table, StreamingReplay
 
 __all__ = [
-    'affine_recursion', 'bank_time_steps', 'CONVERGED_ULPS', 'DEFAULT_CHUNK_SIZE',
+    'affine_recursion', 'bank_time_steps', 'CONVERGED_ULPS', 'DEFAULT_BLOCK_ROWS',
+    'DEFAULT_CHUNK_SIZE', 'Estimates', 'filter_partition', 'filter_table', 'OutputBlock',
+    'output_header', 'partition_meta', 'resolve_horizon', 'RowError', 'Rows',
+    'StreamingReplay',
     'FleetState', 'group_rows', 'Groups', 'LOCKSTEP_STEP_S', 'MAX_ABS_TIME_S',
     'predict_ahead', 'rts_smooth', 'run_bank', 'run_filter_series', 'run_linear_series',
     'run_series', 'SERIES_CALL_S', 'SeriesError', 'SeriesResult', 'smooth_series',

@@ -154,6 +154,12 @@ def _lockstep_linear(preset, dt, z, u, groups: Groups, objects: np.ndarray, x0, 
     order. ``unique_dt`` is np.unique(dt, return_inverse=True).
     """
     n, m = preset.dim_x, preset.dim_z
+    # One initial estimate for every object, or one each: x0 (n, K), P0 (n, n, K) in the
+    # order of ``objects`` (a stream's objects carry their state from the previous block).
+    x0, P0 = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
+    if x0.ndim == 2:
+        order = np.argsort(-groups.counts[objects], kind='stable')   # as _lockstep_rows
+        x0, P0 = x0[:, order], P0[:, :, order]
     objects, counts, active, offsets, rows = _lockstep_rows(groups, objects)
     K = objects.shape[0]
     steps = int(counts[0]) if K else 0
@@ -169,8 +175,8 @@ def _lockstep_linear(preset, dt, z, u, groups: Groups, objects: np.ndarray, x0, 
     u_rows = None if u is None else np.ascontiguousarray(u[rows].T)
     Hs, Rs = soa_const(preset.model.H), soa_const(preset.model.R)
     eye = soa_const(np.eye(n))
-    x_state = np.repeat(np.asarray(x0, dtype=float)[:, None], K, axis=1)
-    P_state = np.repeat(np.asarray(P0, dtype=float)[:, :, None], K, axis=2)
+    x_state = np.array(x0) if x0.ndim == 2 else np.repeat(x0[:, None], K, axis=1)
+    P_state = np.array(P0) if P0.ndim == 3 else np.repeat(P0[:, :, None], K, axis=2)
     out_x, out_P, out_xp, out_Pp = out
     for k in range(steps):
         a, lo, hi = int(active[k]), int(offsets[k]), int(offsets[k + 1])

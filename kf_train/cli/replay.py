@@ -1,6 +1,12 @@
 """
 ``kf-train replay``: run a preset's filter over a CSV of measurements, offline.
 
+The command streams (:mod:`kf_train.cli.replay_stream`: any size in bounded memory,
+CSV or Parquet) unless ``--engine memory`` asks for :func:`replay` below, which holds
+the whole table; ``--engine dask`` runs a fleet on Dask
+(:mod:`kf_train.cli.fleet_dask`). This module keeps the CSV reading, checking and
+column layout both share.
+
 Input CSV: a header row, then one row per measurement. Columns (any order; other
 columns are ignored):
 
@@ -45,6 +51,7 @@ in the same directory that replaces OUTPUT only when complete.
 
 import argparse
 import csv
+import glob
 import io
 import os
 import sys
@@ -58,6 +65,7 @@ from kf_train.batch import (
     run_linear_series, run_series, SeriesError, SeriesResult, smooth_series, SmootherResult,
     TimeOrderError)
 from kf_train.cli.filter_options import add_filter_options, filter_options
+from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
 from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S, PARTICLE_KINDS
 from kf_train.io import csvio
 from kf_train.presets import available_presets, load_preset, load_preset_file, Preset
@@ -496,8 +504,8 @@ def _parser() -> argparse.ArgumentParser:
     """Return the argument parser."""
     parser = argparse.ArgumentParser(
         prog='kf-train replay',
-        description='Run a preset filter over a CSV of measurements and write the '
-                    'estimates to a CSV.',
+        description='Run a preset filter over measurements (CSV or Parquet, any size: '
+                    'streamed in blocks) and write the estimates (CSV or Parquet).',
         epilog='Input: a header, then rows with t [s], the measurements z_position, '
                'z_velocity, z_bearing [rad], z_range [m] the preset uses, and u when it '
                'has a control input (the control over the interval ending at the row); '
@@ -507,15 +515,18 @@ def _parser() -> argparse.ArgumentParser:
                'smoothed_<state> and var_smoothed_<state> with --smooth. Presets: '
                + ', '.join(available_presets()) + '. Bad input names the line and '
                'column, exits 1 and writes nothing.')
-    parser.add_argument('input', metavar='INPUT.csv|BAG', nargs='?',
-                        help="measurements ('-' reads standard input), or a rosbag2 bag "
+    parser.add_argument('input', metavar='INPUT', nargs='?',
+                        help='measurements: CSV, a .parquet file or a directory of Parquet '
+                             "files ('-' reads CSV from standard input), or a rosbag2 bag "
                              '(a directory, .mcap or .db3): see the bag options')
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME', choices=available_presets(),
                         help='a shipped preset: %(choices)s')
     source.add_argument('--config', metavar='FILE', help='a preset YAML file of your own')
-    parser.add_argument('--output', '-o', metavar='OUTPUT.csv',
-                        help="where to write the estimates ('-' writes standard output)")
+    parser.add_argument('--output', '-o', metavar='OUTPUT',
+                        help='where to write the estimates: CSV, a .parquet file or a '
+                             "directory (a Parquet dataset); '-' writes CSV to standard "
+                             'output')
     parser.add_argument('--horizon', metavar='S', type=float, default=None,
                         help="predict S seconds ahead of every row (default: the preset's "
                              'horizon; 0 turns prediction off)')
@@ -525,6 +536,7 @@ def _parser() -> argparse.ArgumentParser:
                         help='time at which the initial estimate holds [s] (default 0)')
     parser.add_argument('--list', action='store_true',
                         help='list the shipped presets and exit')
+    add_engine_options(parser)
     parser.add_argument('--filter', choices=FILTER_KINDS, default=None,
                         help='run this filter of the family row by row (default: the '
                              "preset's exact filter, vectorised where linear): %(choices)s")
@@ -559,10 +571,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.preset is None and args.config is None:
         parser.error('one of --preset NAME or --config FILE is required')
     if args.input is None or args.output is None:
-        parser.error('INPUT.csv and --output OUTPUT.csv are required')
+        parser.error('INPUT and --output OUTPUT are required')
     for option in ('params_file', 'parameter', 'topic', 'control_topic'):
         if getattr(args, option):
             parser.error(f"--{option.replace('_', '-')} applies to a bag input only")
+    check_engine_options(parser, args)
     for option, value in (('--horizon', args.horizon), ('--t0', args.t0)):
         if value is not None and not np.isfinite(value):
             parser.error(f'{option} must be a finite number, got {value}')
@@ -575,8 +588,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         preset = load_preset(args.preset) if args.preset else load_preset_file(args.config)
         filt = None if args.filter is None else make_filter(preset, args.filter, options)
-        summary = replay(preset, args.input, args.output, horizon_s=args.horizon,
-                         smooth=args.smooth, t0_s=args.t0, filt=filt)
+        summary = run_engine(args, preset, filt)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -587,8 +599,12 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 def is_bag(path: str) -> bool:
-    """Return whether ``path`` names a bag (a directory, a .mcap or .db3 file), not a CSV."""
-    return os.path.isdir(path) or path.endswith(('.mcap', '.db3'))
+    """Return whether ``path`` names a bag (a .mcap or .db3 file, a directory), not a table."""
+    if path.endswith(('.mcap', '.db3')):
+        return True
+    # A directory holding Parquet files is a dataset for the columnar path, not a bag.
+    return os.path.isdir(path) and not glob.glob(os.path.join(path, '**', '*.parquet'),
+                                                 recursive=True)
 
 
 def bag_replay_module():

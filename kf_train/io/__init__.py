@@ -1,5 +1,6 @@
 """
-Floor 3, input and output: the exact bulk CSV codec; bags (``bagio``, ``bagio_output``).
+Floor 3, input and output: CSV codecs (csvio; polars) and Parquet; bags (``bagio``,
+``bagio_output``).
 
 The bag modules need ``rosbags`` (the extra ``[bag]``): they are imported when used
 (``from kf_train.io import bagio``), not here.
@@ -10,14 +11,15 @@ The bag modules need ``rosbags`` (the extra ``[bag]``): they are imported when u
 
 import importlib
 
-from kf_train.io import csvio
+from kf_train.io import columnar, csvio
 from kf_train.io.csvio import (
     BLOCK_FIELDS, BLOCK_ROWS, Fields, format_labels, format_rows, format_values, parse_labels,
     parse_numbers, parse_rows, split_fields)
 
 __all__ = [
-    'bagio', 'bagio_output', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'csvio', 'Fields', 'format_labels',
-    'format_rows', 'format_values', 'parse_labels', 'parse_numbers', 'parse_rows', 'split_fields',
+    'bagio', 'bagio_output', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'columnar', 'csvio', 'Fields',
+    'format_labels', 'format_rows', 'format_values', 'parse_labels', 'parse_numbers',
+    'parse_rows', 'split_fields',
 ]
 
 _LAZY = ('bagio', 'bagio_output')

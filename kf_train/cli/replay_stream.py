@@ -1,0 +1,379 @@
+"""
+``kf-train replay`` in bounded memory: read, filter and write block by block.
+
+Readers hand :class:`kf_train.batch.stream.StreamingReplay` the rows in pieces and the
+writer takes its output blocks as they come, so memory holds a block or two whatever
+the input's size. Formats by name: ``.parquet`` (or a directory of Parquet files, one
+dataset) in and out, else CSV; '-' is standard input or output (CSV).
+
+Two CSV paths give the same bytes:
+
+* with the ``[fast]`` extra, polars reads and writes (:mod:`kf_train.io.columnar`);
+  anything it cannot vouch for (blank lines, a bad cell, an error to report) sends
+  the whole replay back to the start on the built-in path, which names the line;
+* without it, the built-in path: the file in blocks of lines, each parsed by
+  :func:`kf_train.cli.replay.read_table` and written by :mod:`kf_train.io.csvio`.
+
+Parquet needs the extra. Output goes to a temporary file (or directory) beside OUTPUT
+that replaces it only when complete, so bad input leaves no partial output.
+"""
+
+import io
+import os
+import queue
+import re
+import sys
+import threading
+import time
+from typing import Dict, Iterator, List, Optional
+
+from kf_train.batch import DEFAULT_BLOCK_ROWS, RowError, Rows, StreamingReplay
+from kf_train.cli import replay as inmemory
+from kf_train.io import columnar
+import numpy as np
+
+ID_COLUMN = inmemory.ID_COLUMN
+# Bytes of CSV text the built-in reader parses at a time.
+BLOCK_BYTES = 1 << 20
+
+
+def is_parquet(path: str) -> bool:
+    """Return whether ``path`` names Parquet: a .parquet file or a directory."""
+    return path != '-' and (path.endswith('.parquet') or os.path.isdir(path)
+                            or path.endswith(os.sep))
+
+
+class Labels:
+    """The ids of a stream: text -> code, in order of first appearance."""
+
+    def __init__(self):
+        """Start with no id."""
+        self.codes: Dict[str, int] = {}
+        self.names: List[str] = []
+
+    def encode(self, local_codes: np.ndarray, local_labels: List[str]) -> np.ndarray:
+        """Return the stream codes of rows given as codes into ``local_labels``."""
+        table = np.empty(len(local_labels), dtype=np.int64)
+        for i, label in enumerate(local_labels):
+            code = self.codes.get(label)
+            if code is None:
+                code = self.codes[label] = len(self.names)
+                self.names.append(label)
+            table[i] = code
+        return table[local_codes]
+
+
+class Source:
+    """An input: pieces of rows, and the line (or row) number of every stream row."""
+
+    def __init__(self, path: str, preset, where: str = 'line'):
+        """Read ``path`` for ``preset``; ``where`` is 'line' (CSV) or 'row' (Parquet)."""
+        self.path, self.preset, self.where = path, preset, where
+        self.needed = inmemory.required_columns(preset)
+        self.wanted: List[str] = []
+        self.id_column: Optional[str] = None
+        self.labels = Labels()
+        self.rows = 0
+        self.index: List[tuple] = []   # per piece: (first row, rows, first line, lines)
+
+    def rows_of(self, columns: Dict[str, np.ndarray], codes, labels,
+                lines: Optional[np.ndarray] = None) -> Rows:
+        """Return a piece as engine rows (codes made stream-wide; ``lines`` if not plain)."""
+        t = columns[self.wanted[0]]
+        N = t.shape[0]
+        z = np.column_stack([columns[name] for name in self.wanted[1:1 + self.preset.dim_z]])
+        u = None
+        if self.preset.dim_u:
+            u = np.column_stack([columns[name] for name in self.wanted[1 + self.preset.dim_z:]])
+        stream_codes = None if codes is None else self.labels.encode(codes, labels)
+        first_line = self.rows + 2 if lines is None else int(lines[0])
+        plain = lines is None or int(lines[-1]) - first_line + 1 == N
+        self.index.append((self.rows, N, first_line, None if plain else lines))
+        self.rows += N
+        return Rows(t, z.reshape(N, self.preset.dim_z), u, stream_codes)
+
+    def number(self, row: int) -> int:
+        """Return the file line (CSV) or the 1-based data row (Parquet) of a stream row."""
+        if self.where == 'row':
+            return row + 1
+        for first, count, first_line, lines in reversed(self.index):
+            if first <= row < first + count:
+                return first_line + row - first if lines is None else int(lines[row - first])
+        return row + 2
+
+
+def _header_of(path: str, data: bytes) -> List[str]:
+    """Return the header's names, checked as the in-memory replay checks them."""
+    head = data.partition(b'\n')[0]
+    if head.startswith(inmemory.UTF8_BOM):
+        head = head[len(inmemory.UTF8_BOM):]
+    text = inmemory._decode(path, head.rstrip(b'\r'))
+    if not text.strip():
+        raise inmemory.InputError(f'{path} line {inmemory.HEADER_LINE}: expected a header '
+                                  'row naming the columns, e.g. t,z_position')
+    return inmemory._header(path, text)
+
+
+class CsvSource(Source):
+    """A CSV read block by block with the in-memory replay's exact parser."""
+
+    def start(self) -> None:
+        """Read and check the header."""
+        self.stream = _stdin() if self.path == '-' else _open(self.path)
+        head = self.stream.readline()
+        header = _header_of(self.path, head)
+        self.wanted = inmemory._resolve(self.path, header, self.needed)
+        self.id_column = ID_COLUMN if ID_COLUMN in header else None
+        self.head = head.rstrip(b'\r\n')
+
+    def pieces(self) -> Iterator[Rows]:
+        """Yield the rows, a few MiB of text at a time."""
+        try:
+            line = 2
+            for block in _line_blocks(self.stream):
+                table = self._parse(self.head, block, line)
+                if table.rows:
+                    yield self.rows_of(table.columns, table.ids, table.id_labels,
+                                       table.lines - 2 + line)
+                line += block.count(b'\n')
+        finally:
+            if self.path != '-':
+                self.stream.close()
+
+    def _parse(self, head: bytes, block: bytes, line: int):
+        """Parse one block; errors name the file's line."""
+        try:
+            return inmemory.read_table(self.path, self.needed, head + b'\n' + block, ids=True)
+        except inmemory.InputError as error:
+            prefix = f'{self.path} line '
+            message = str(error)
+            if message.startswith(prefix):
+                match = re.match(r'\d+', message[len(prefix):])
+                if match and int(match.group()) > inmemory.HEADER_LINE:
+                    number = int(match.group()) - 2 + line
+                    message = prefix + str(number) + message[len(prefix) + match.end():]
+            raise inmemory.InputError(message) from None
+
+
+def _stdin():
+    """Return standard input as a binary stream (a text one, as in tests, is encoded)."""
+    if hasattr(sys.stdin, 'buffer'):
+        return sys.stdin.buffer
+    return io.BytesIO(sys.stdin.read().encode('utf-8'))
+
+
+def _open(path: str):
+    """Open a file for reading; InputError if it cannot be."""
+    try:
+        return open(path, 'rb')
+    except OSError as error:
+        raise inmemory.InputError(f'{path}: cannot read: {error.strerror}') from None
+
+
+def _line_blocks(stream) -> Iterator[bytes]:
+    """Yield the text in blocks of whole lines (no quoted field cut), CR LF made LF."""
+    rest = b''
+    while True:
+        data = stream.read(BLOCK_BYTES)
+        text = rest + data
+        if not data:
+            if text:
+                yield text.replace(b'\r\n', b'\n').replace(b'\r', b'\n')
+            return
+        cut = text.rfind(b'\n') + 1
+        while cut and text.count(b'"', 0, cut) % 2:     # inside a quoted field
+            cut = text.rfind(b'\n', 0, cut - 1) + 1
+        if cut == 0:
+            rest = text
+            continue
+        rest = text[cut:]
+        block = text[:cut]
+        if b'\r' in block:
+            block = block.replace(b'\r\n', b'\n').replace(b'\r', b'\n')
+        yield block
+
+
+class FastCsvSource(Source):
+    """A CSV parsed by polars block by block; raises columnar.NotPlain if unusual."""
+
+    def start(self) -> None:
+        """Read and check the header."""
+        self.stream = _open(self.path)
+        self.header = _header_of(self.path, self.stream.readline())
+        self.wanted = inmemory._resolve(self.path, self.header, self.needed)
+        self.id_column = ID_COLUMN if ID_COLUMN in self.header else None
+
+    def pieces(self) -> Iterator[Rows]:
+        """Yield the rows, a few MiB of text at a time."""
+        try:
+            for piece in columnar.read_csv_pieces(_line_blocks(self.stream), self.header,
+                                                  self.wanted, self.id_column):
+                yield self.rows_of(piece.columns, piece.codes, piece.labels)
+        finally:
+            self.stream.close()
+
+
+class ParquetSource(Source):
+    """A Parquet file or dataset directory, read by polars."""
+
+    def start(self) -> None:
+        """Read the schema and find the columns."""
+        self.where = 'row'
+        header = columnar.parquet_columns(self.path)
+        try:
+            self.wanted = inmemory._resolve(self.path, header, self.needed)
+        except inmemory.InputError as error:          # a schema has no line 1
+            raise inmemory.InputError(str(error).replace(
+                f'{self.path} line {inmemory.HEADER_LINE}:', f'{self.path}:', 1)) from None
+        self.id_column = ID_COLUMN if ID_COLUMN in header else None
+
+    def pieces(self) -> Iterator[Rows]:
+        """Yield the rows in pieces of a block."""
+        for piece in columnar.read_parquet_pieces(self.path, self.wanted, self.id_column,
+                                                  DEFAULT_BLOCK_ROWS):
+            yield self.rows_of(piece.columns, piece.codes, piece.labels)
+
+
+# ---------------------------------------------------------------------------
+# Running
+# ---------------------------------------------------------------------------
+
+def _row_message(source: Source, error: RowError) -> str:
+    """Return the one-line message of a row error: file, line (or row) and column."""
+    where, path = source.where, source.path
+    at = f'{path} {where} {source.number(error.row)}'
+    label = None
+    if source.id_column is not None and error.obj is not None:
+        label = source.labels.names[error.obj]
+    if error.kind == 'range':
+        return f"{at}, column 't': {error.reason}"
+    if error.kind == 't0':
+        of = '' if label is None else f" of id '{label}'"
+        return f"{at}, column 't': {error.reason}{of} (set it with --t0)"
+    if error.kind == 'order':
+        if label is None:
+            return f"{at}, column 't': {error.reason} (t must increase)"
+        return (f"{at}, column 't': {error.reason} of id '{label}' ({where} "
+                f'{source.number(error.previous)}); t must increase per id')
+    return f'{at}: {error.reason}'
+
+
+def prefetch(items: Iterator, depth: int = 2) -> Iterator:
+    """
+    Yield from ``items``, produced in a second thread up to ``depth`` ahead.
+
+    polars parses without holding the GIL, so reading the next piece overlaps filtering
+    this one. An exception in the producer is raised here; stopping early (an error on
+    this side) stops the producer at its next piece.
+    """
+    pending: 'queue.Queue' = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def produce() -> None:
+        try:
+            for item in items:
+                while not stop.is_set():
+                    try:
+                        pending.put((item, None), timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            pending.put((end, None))
+        except BaseException as error:            # handed to the consuming thread
+            pending.put((end, error))
+
+    thread = threading.Thread(target=produce, name='kf-train-reader', daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, error = pending.get()
+            if error is not None:
+                raise error
+            if item is end:
+                return
+            yield item
+    finally:
+        stop.set()
+        thread.join()
+
+
+def _blocks(source: Source, engine: StreamingReplay) -> Iterator[tuple]:
+    """Yield the output blocks (columns, codes) of a whole input."""
+    pieces = source.pieces()
+    if not isinstance(source, CsvSource):            # polars readers: read ahead
+        pieces = prefetch(pieces)
+    for rows in pieces:
+        for block in engine.push(rows):
+            yield block.columns, block.codes
+    for block in engine.finish():
+        yield block.columns, block.codes
+
+
+def _run_once(source: Source, output_path: str, fast_output: bool, options: dict):
+    """Replay once from ``source``; return the output header."""
+    from kf_train.cli.replay_output import open_output
+    source.start()
+    with StreamingReplay(source.preset, **options) as engine:
+        header = ([ID_COLUMN] if source.id_column else []) + engine.header
+        output = open_output(output_path, header, fast_output)
+        try:
+            output.run(_blocks(source, engine), source.labels.names)
+        except BaseException:
+            output.abort()
+            raise
+        output.commit()
+    return header
+
+
+def _sources(preset, input_path: str, fast: bool) -> List[Source]:
+    """Return the readers to try in turn (the fast one first, when it applies)."""
+    if is_parquet(input_path):
+        return [ParquetSource(input_path, preset, 'row')]
+    if fast and input_path != '-':
+        return [FastCsvSource(input_path, preset), CsvSource(input_path, preset)]
+    return [CsvSource(input_path, preset)]
+
+
+def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
+                  smooth: bool = False, t0_s: float = 0.0, filt=None,
+                  block_rows: int = DEFAULT_BLOCK_ROWS, codec: str = 'auto',
+                  spill_dir: Optional[str] = None) -> inmemory.ReplaySummary:
+    """
+    Replay ``input_path`` into ``output_path`` in bounded memory; raise InputError.
+
+    ``codec``: 'auto' (polars when installed), 'polars' or 'builtin'. ``block_rows``
+    fixes the blocks (the numbers depend on it, not on how the input is read).
+    """
+    start = time.perf_counter()
+    have = columnar.available()
+    parquet = is_parquet(input_path) or is_parquet(output_path)
+    if (parquet or codec == 'polars') and not have:
+        raise inmemory.InputError(f'{input_path if is_parquet(input_path) else output_path}: '
+                                  f'Parquet needs polars: {columnar.EXTRA_HINT}'
+                                  if parquet else f'--codec polars: {columnar.EXTRA_HINT}')
+    fast = have and codec != 'builtin'
+    options = {'horizon_s': horizon_s, 't0_s': t0_s, 'filt': filt, 'smooth': smooth,
+               'block_rows': block_rows, 'spill_dir': spill_dir}
+    sources = _sources(preset, input_path, fast)
+    for attempt, source in enumerate(sources):
+        last = attempt == len(sources) - 1
+        try:
+            header = _run_once(source, output_path, fast, options)
+        except columnar.NotPlain:
+            continue                      # read it again, the careful way
+        except RowError as error:
+            if not last:
+                continue                  # the careful reader names the line
+            raise inmemory.InputError(_row_message(source, error)) from None
+        except columnar.ParquetError as error:
+            at = '' if error.row is None else f' row {error.row + 1},'
+            raise inmemory.InputError(f'{input_path}{at} {error}') from None
+        except inmemory.InputError:
+            raise
+        except ValueError as error:
+            raise inmemory.InputError(f'{input_path}: {error}') from None
+        return inmemory.ReplaySummary(source.rows, header, time.perf_counter() - start)
+    raise AssertionError('the careful reader never gives up')  # pragma: no cover

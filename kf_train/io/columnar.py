@@ -1,0 +1,254 @@
+"""
+CSV and Parquet through polars: the replay's fast path (the ``kf_train[fast]`` extra).
+
+Why polars (measurements in ``docs/scale.md``, script ``benchmarks/io_libraries.py``):
+on our tables it writes CSV about 3x faster than pyarrow and reads and writes Parquet
+faster too; and its number text is Python's ``repr`` (the shortest string that reads
+back to the same double) for every double except two layout rules, which
+:func:`repr_strings` rewrites, so a replay writes the same bytes with or without it.
+
+* Readers yield :class:`Piece` s of ``chunk_rows`` rows: float64 columns, and the id
+  column as codes into the piece's sorted labels. A CSV reader that meets anything it
+  cannot vouch for (a blank line, an empty or non-finite cell, text that is not a
+  number) raises :class:`NotPlain`: the caller then reads the file the careful way,
+  which names the line. Parquet has no lines: its errors name the row.
+* Writers take blocks of output columns (and the id of every row).
+
+Nothing else in the package imports polars; this module imports it on first use, so
+``import kf_train.io.columnar`` works without it (:func:`available` says whether it is
+there).
+"""
+
+import os
+from typing import Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence
+
+import numpy as np
+
+# Outside [1e-9, 1e-4) and for finite values, polars writes a double exactly as repr().
+_REPR_LOW, _REPR_HIGH = 1e-9, 1e-4
+EXTRA_HINT = "install the fast extra: pip install 'kf_train[fast]' (polars)"
+
+
+class NotPlain(Exception):
+    """The fast reader cannot vouch for this input: read it the careful way."""
+
+
+class Piece(NamedTuple):
+    """Rows read: the wanted float64 columns, and each row's id as a code into labels."""
+
+    columns: Dict[str, np.ndarray]
+    codes: Optional[np.ndarray]
+    labels: Optional[List[str]]
+
+
+def available() -> bool:
+    """Return whether polars can be imported."""
+    try:
+        _pl()
+    except ImportError:
+        return False
+    return True
+
+
+def _pl():
+    """Return the polars module (ImportError when the extra is not installed)."""
+    import polars
+    return polars
+
+
+def _codes(ids) -> tuple:
+    """Return (codes, sorted labels) of a polars string Series."""
+    pl = _pl()
+    labels = ids.unique().sort()
+    codes = ids.cast(pl.Enum(labels)).to_physical().to_numpy().astype(np.int64)
+    return codes, labels.to_list()
+
+
+def _piece(frame, wanted: Sequence[str], id_column: Optional[str],
+           bad: Callable[[str, int], Exception]) -> Piece:
+    """Return a batch as a Piece; ``bad(column, row)`` builds the error for a bad cell."""
+    pl = _pl()
+    columns = {}
+    for name in wanted:
+        series = frame.get_column(name)
+        if series.null_count():
+            raise bad(name, int(series.is_null().arg_max()))
+        values = series.cast(pl.Float64).to_numpy()
+        finite = np.isfinite(values)
+        if not finite.all():
+            raise bad(name, int(np.argmin(finite)))
+        columns[name] = values
+    if id_column is None:
+        return Piece(columns, None, None)
+    ids = frame.get_column(id_column).cast(pl.String).str.strip_chars()
+    empty = ids.is_null() | (ids.str.len_bytes() == 0)
+    if empty.any():
+        raise bad(id_column, int(empty.arg_max()))
+    codes, labels = _codes(ids)
+    return Piece(columns, codes, labels)
+
+
+def read_csv_pieces(blocks: Iterable[bytes], header: Sequence[str], wanted: Sequence[str],
+                    id_column: Optional[str]) -> Iterator[Piece]:
+    """
+    Yield the rows of CSV text given in blocks of whole lines (no header); raise NotPlain.
+
+    ``header`` names the columns (the caller read line 1). Each block is parsed on its
+    own, so memory holds one block (polars' own streaming reader reads ahead without
+    bound on a slow consumer).
+    """
+    pl = _pl()
+    keep = [i for i, name in enumerate(header) if name in set(wanted) | {id_column}]
+    schema = {name: (pl.Float64 if name in wanted else pl.String) for name in header}
+    try:
+        for block in blocks:
+            frame = pl.read_csv(block, has_header=False, schema=schema, columns=keep)
+            yield _piece(frame, wanted, id_column, lambda column, row: NotPlain(column))
+    except (pl.exceptions.PolarsError, OSError, ValueError) as error:
+        raise NotPlain(str(error)) from None
+
+
+class ParquetError(ValueError):
+    """Bad Parquet input; ``row`` is the 0-based row of the dataset, ``column`` its column."""
+
+    def __init__(self, message: str, row: Optional[int] = None, column: Optional[str] = None):
+        """Store the message, the row and the column."""
+        super().__init__(message)
+        self.row, self.column = row, column
+
+
+def parquet_source(path: str) -> str:
+    """Return what polars scans for ``path``: the file, or every Parquet file below a dir."""
+    if os.path.isdir(path):
+        return os.path.join(path, '**', '*.parquet')
+    return path
+
+
+def parquet_columns(path: str) -> List[str]:
+    """Return the column names of a Parquet file or dataset directory."""
+    pl = _pl()
+    try:
+        return list(pl.scan_parquet(parquet_source(path)).collect_schema().names())
+    except (pl.exceptions.PolarsError, OSError) as error:
+        raise ParquetError(f'cannot read Parquet: {" ".join(str(error).split())[:300]}'
+                           ) from None
+
+
+def read_parquet_pieces(path: str, wanted: Sequence[str], id_column: Optional[str],
+                        chunk_rows: int) -> Iterator[Piece]:
+    """Yield the Parquet file's (or dataset's) rows in pieces; raise ParquetError."""
+    pl = _pl()
+    keep = list(wanted) + ([id_column] if id_column else [])
+    done = 0
+
+    def bad(column: str, row: int) -> ParquetError:
+        return ParquetError(f"column '{column}': empty or non-finite value", done + row,
+                            column)
+
+    try:
+        # Slice by slice: polars' collect_batches reads ahead without bound when the
+        # consumer is slower than the reader (the whole dataset, in the end).
+        scan = pl.scan_parquet(parquet_source(path)).select(keep)
+        while True:
+            frame = scan.slice(done, chunk_rows).collect()
+            if not frame.height:
+                break
+            yield _piece(frame, wanted, id_column, bad)
+            done += frame.height
+    except (pl.exceptions.PolarsError, OSError) as error:
+        raise ParquetError(f'cannot read Parquet: {" ".join(str(error).split())[:300]}'
+                           ) from None
+
+
+# ---------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------
+
+def repr_strings(values: np.ndarray, name: str = ''):
+    """
+    Return the doubles as a polars Series: Float64 if polars writes them as repr(), else text.
+
+    polars' shortest round-trip digits are repr's, but its layout differs in one band:
+    for 1e-9 <= |v| < 1e-4 it writes 0.0000123 where repr writes 1.23e-05, and 1.5e-7
+    where repr pads the exponent (1.5e-07). In scientific notation polars writes every
+    value of that band as repr does but for the padding of its one-digit exponent, so
+    those values are written that way and padded; non-finite values, rare, by repr.
+    """
+    pl = _pl()
+    values = np.asarray(values, dtype=np.float64)
+    size = np.abs(values)
+    odd = (size >= _REPR_LOW) & (size < _REPR_HIGH)
+    finite = np.isfinite(values)
+    if not odd.any() and finite.all():
+        return pl.Series(name, values)
+    band = np.flatnonzero(odd)
+    blob = pl.DataFrame({name: values[band]}).write_csv(
+        include_header=False, float_scientific=True).replace('e-', 'e-0')
+    fixed = pl.Series(name, [blob]).str.split('\n').explode().head(band.size)
+    if band.size == values.size:
+        return fixed
+    text = pl.Series(name, values).cast(pl.String)
+    if band.size:
+        text = text.scatter(band, fixed)
+    bad = np.flatnonzero(~finite)
+    if bad.size:
+        text = text.scatter(bad, [repr(v) for v in values[bad].tolist()])
+    return text
+
+
+def _frame(header: Sequence[str], columns: Sequence[np.ndarray], ids, as_text: bool):
+    """Return a block as a polars DataFrame (the id first when given)."""
+    pl = _pl()
+    data = [] if ids is None else [ids.alias(header[0])]
+    names = header if ids is None else header[1:]
+    for name, column in zip(names, columns):
+        data.append(repr_strings(column, name) if as_text else pl.Series(name, column))
+    return pl.DataFrame(data)
+
+
+def id_series(labels: Sequence[str], codes: np.ndarray):
+    """Return the id text of every row: ``labels[codes]``, as a polars Series."""
+    pl = _pl()
+    return pl.Series('id', list(labels), dtype=pl.String).gather(codes)
+
+
+class CsvWriter:
+    """Write blocks of output columns as CSV text, numbers exactly as repr() writes them."""
+
+    def __init__(self, stream, header: Sequence[str]):
+        """Write the header to the binary ``stream``."""
+        self.stream, self.header = stream, list(header)
+        stream.write((','.join(self.header) + '\n').encode('utf-8'))
+
+    def write(self, columns: Sequence[np.ndarray], ids=None) -> None:
+        """Write one block (``ids``: a Series from :func:`id_series`, or None)."""
+        if not len(columns[0]):
+            return
+        _frame(self.header, columns, ids, True).write_csv(self.stream, include_header=False)
+
+
+def write_parquet_file(path: str, header: Sequence[str], has_id: bool,
+                       blocks: Iterable[tuple]) -> None:
+    """
+    Write blocks (columns, ids) into one Parquet file, as they come (bounded memory).
+
+    polars pulls the blocks through an IO source and streams them into the file; an
+    exception raised while producing a block propagates unchanged.
+    """
+    pl = _pl()
+    from polars.io.plugins import register_io_source
+    schema = {name: pl.Float64 for name in header}
+    if has_id:
+        schema[header[0]] = pl.String
+
+    def source(with_columns, predicate, n_rows, batch_size) -> Iterator:
+        for columns, ids in blocks:
+            yield _frame(header, columns, ids, False)
+
+    register_io_source(source, schema=schema).sink_parquet(path)
+
+
+def write_parquet_part(path: str, header: Sequence[str], columns: Sequence[np.ndarray],
+                       ids=None) -> None:
+    """Write one block as a Parquet file (a part of a dataset directory)."""
+    _frame(header, columns, ids, False).write_parquet(path)
