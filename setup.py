@@ -38,6 +38,8 @@ setup(
     extras_require={
         # kf-train plot and the demo's figures
         'plot': ['matplotlib'],
+        # kf-train tune's optimiser (kf_train.cli.noise_fit); never the nodes'
+        'tune': ['scipy'],
     },
     zip_safe=True,
     maintainer='kf_train maintainers',
