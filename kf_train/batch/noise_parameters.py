@@ -23,7 +23,7 @@ VARIANCE_UNITS = {'position': 'm²', 'velocity': 'm²/s²'}
 
 
 class LikelihoodProblem(Protocol):
-    """What :func:`estimate_noise` needs of a problem (:class:`TuningProblem` has it)."""
+    """What ``estimate_noise`` needs of a problem (:class:`TuningProblem` has it)."""
 
     rows: int
     """How many terms ℓ sums (it optimises ℓ per term)."""
@@ -34,7 +34,7 @@ class LikelihoodProblem(Protocol):
 
 class Parameterisation(Protocol):
     """
-    What :func:`estimate_noise` needs of a parameterisation: settings as vectors.
+    What ``estimate_noise`` needs of a parameterisation: settings as vectors.
 
     :class:`NoiseParameterisation` is the one for q, R and the initial state; a rail
     model's regime noises would be another (one log entry per regime's density).

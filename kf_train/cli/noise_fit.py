@@ -317,8 +317,8 @@ def estimate_noise(problem: 'LikelihoodProblem', parameterisation: 'Parameterisa
     """
     Return the maximum-likelihood noise with confidence intervals.
 
-    ``problem`` is a :class:`TuningProblem` and ``parameterisation`` a
-    :class:`NoiseParameterisation`, or any pair with their interface
+    ``problem`` is a :class:`kf_train.batch.TuningProblem` and ``parameterisation`` a
+    :class:`kf_train.batch.NoiseParameterisation`, or any pair with their interface
     (:class:`LikelihoodProblem`, :class:`Parameterisation`); ``start`` a setting.
 
     The optimiser is scipy's L-BFGS-B (bounded quasi-Newton, central-difference
