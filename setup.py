@@ -47,6 +47,8 @@ setup(
         'fast': ['polars'],
         # kf-train replay --engine dask: fleets on a Dask cluster (pyarrow, pandas with it)
         'dask': ['dask[dataframe]', 'distributed', 'polars'],
+        # kf-train tune's optimiser (kf_train.cli.noise_fit); never the nodes'
+        'tune': ['scipy'],
     },
     zip_safe=True,
     maintainer='kf_train maintainers',

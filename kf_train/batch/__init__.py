@@ -8,7 +8,12 @@ steps N train filters at once; :func:`rts_smooth` / :func:`smooth_series` smooth
 :class:`StreamingReplay` filters a table of any length in fixed blocks (bounded
 memory), :func:`filter_table` the same on arrays, :func:`filter_partition` one Dask
 partition.
-Built on :mod:`kf_train.filters` (and presets passed in) only.
+:class:`TuningProblem` is the exact likelihood of a noise setting (the innovations of
+the estimator node's filter, run as :func:`run_linear_series`), which ``kf-train tune``
+maximises over a :class:`NoiseParameterisation`; :func:`nis_consistency` and
+:func:`prediction_errors` check a setting; :class:`RunningNoiseEstimate` suggests q from
+a stream's recent window (numpy only, for the node's diagnostics).
+Built on :mod:`kf_train.filters` and :mod:`kf_train.presets` only.
 """
 
 from kf_train.batch.affine import affine_recursion
@@ -20,6 +25,15 @@ from kf_train.batch.chunked import (
 from kf_train.batch.fleet import DEFAULT_CHUNK_SIZE, FleetState, TrainFleet
 from kf_train.batch.linear import CONVERGED_ULPS, predict_ahead, run_linear_series
 from kf_train.batch.partition import filter_partition, partition_meta
+from kf_train.batch.noise_checks import (
+    ConsistencyReport, nis_consistency, prediction_errors, PredictionReport, whitened)
+from kf_train.batch.noise_likelihood import (
+    Innovations, is_constant_velocity, make_segment, measured_states, NoiseSetting,
+    noisy_preset, Segment, STATE_UNITS, TUNING_INITIALIZATIONS, TuningProblem,
+    VARIANCE_PARAMETERS)
+from kf_train.batch.noise_parameters import (
+    LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
+from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
 from kf_train.batch.series import (
     MAX_ABS_TIME_S, run_filter_series, run_series, SeriesError, SeriesResult, time_steps_s)
 from kf_train.batch.smoother import (
@@ -27,12 +41,17 @@ from kf_train.batch.smoother import (
 from kf_train.batch.stream import filter_table, StreamingReplay
 
 __all__ = [
-    'affine_recursion', 'bank_time_steps', 'CONVERGED_ULPS', 'DEFAULT_BLOCK_ROWS',
-    'DEFAULT_CHUNK_SIZE', 'Estimates', 'filter_partition', 'filter_table', 'OutputBlock',
-    'output_header', 'partition_meta', 'resolve_horizon', 'RowError', 'Rows',
-    'StreamingReplay',
-    'FleetState', 'group_rows', 'Groups', 'LOCKSTEP_STEP_S', 'MAX_ABS_TIME_S',
-    'predict_ahead', 'rts_smooth', 'run_bank', 'run_filter_series', 'run_linear_series',
-    'run_series', 'SERIES_CALL_S', 'SeriesError', 'SeriesResult', 'smooth_series',
-    'SmootherResult', 'time_steps_s', 'TimeOrderError', 'TrainFleet', 'VECTORISED_MAX_STATES',
+    'affine_recursion', 'bank_time_steps', 'ConsistencyReport', 'CONVERGED_ULPS',
+    'DEFAULT_BLOCK_ROWS', 'DEFAULT_CHUNK_SIZE', 'Estimates', 'filter_partition',
+    'filter_table', 'FleetState', 'group_rows', 'Groups', 'Innovations',
+    'is_constant_velocity', 'LikelihoodProblem', 'LOCKSTEP_STEP_S', 'make_segment',
+    'MAX_ABS_TIME_S', 'measured_states', 'nis_consistency', 'NoiseParameterisation',
+    'NoiseSetting', 'NoiseSuggestion', 'noisy_preset', 'output_header', 'OutputBlock',
+    'Parameter', 'Parameterisation', 'partition_meta', 'predict_ahead', 'prediction_errors',
+    'PredictionReport', 'resolve_horizon', 'RowError', 'Rows', 'rts_smooth', 'run_bank',
+    'run_filter_series', 'run_linear_series', 'run_series', 'RunningNoiseEstimate', 'Segment',
+    'SERIES_CALL_S', 'SeriesError', 'SeriesResult', 'smooth_series', 'SmootherResult',
+    'STATE_UNITS', 'StreamingReplay', 'time_steps_s', 'TimeOrderError', 'TrainFleet',
+    'TUNING_INITIALIZATIONS', 'TuningProblem', 'VARIANCE_PARAMETERS', 'VARIANCE_UNITS',
+    'VECTORISED_MAX_STATES', 'whitened',
 ]

@@ -24,6 +24,7 @@ COMMANDS = {
     'replay': ('kf_train.cli.replay', 'run a preset filter over a CSV of measurements, offline'),
     'plot': ('kf_train.cli.plotting', "write PNG figures: the seeds' scenarios or a replay"),
     'compare': ('kf_train.cli.compare', 'compare KF/EKF, UKF and particle filter by Monte Carlo'),
+    'tune': ('kf_train.cli.tune', 'estimate q and R from measurements, write a params file'),
     'bench': (None, 'measure performance side by side, print one table'),
 }
 

@@ -4,13 +4,16 @@ Floor 3, simulation: the truth, the seeds' scenarios, live streams, faults, base
 :class:`TrainSimulation` is seed 000's train; :func:`scenario_for_preset` gives each
 shipped preset its seed scenario (truth plus seeded noise); :func:`make_stream` the
 simulator node's live streams (:data:`SCENARIOS`); :class:`FaultInjector` its seeded
-faults; :mod:`~kf_train.sim.baselines` the seeds' naive estimators. Built on
+faults; :mod:`~kf_train.sim.baselines` the seeds' naive estimators;
+:func:`white_noise_acceleration_scenario` a train under random force with known q and
+R (the data of the noise-estimation tests). Built on
 :mod:`kf_train.filters` and :mod:`kf_train.presets` only.
 """
 
 from kf_train.sim import baselines
 from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
 from kf_train.sim.faults import Delivery, FAULT_STREAM, FaultInjector, FaultSettings
+from kf_train.sim.noise_simulation import white_noise_acceleration_scenario
 from kf_train.sim.scenario_streams import (
     CAR_ACCELERATION_MPS2, CarStream, CONTROL_NAMES, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
     make_stream, ROBOT_SPEED_STD_MPS, RobotStream, SCENARIOS, ScenarioSample, TrainStream)
@@ -28,5 +31,5 @@ __all__ = [
     'raw_difference_velocity', 'ROBOT_SPEED_STD_MPS', 'robot_position_m', 'robot_scenario',
     'RobotStream', 'running_average', 'Scenario', 'scenario_for_preset', 'ScenarioSample',
     'SCENARIOS', 'train_scenario', 'TrainSample', 'TrainSeries', 'TrainSimulation',
-    'TrainStream',
+    'TrainStream', 'white_noise_acceleration_scenario',
 ]

@@ -6,7 +6,8 @@ The package's floors (README, "The floors"), checked on the source with ast.
 packages of floor 3 do not import each other. ``core`` is the old API's re-export: it
 may import floors 1-3, and nothing in kf_train imports it.
 Only ``ros`` imports rclpy or message packages; only ``cli`` imports argparse,
-matplotlib or subprocess (``benchmarks/`` is outside the package). Packages talk
+matplotlib, scipy (the optional extra of ``kf-train tune``) or subprocess
+(``benchmarks/`` is outside the package). Packages talk
 through their ``__init__``: an import from another package names the package itself
 (``from kf_train.filters import X``), and X is public (no leading underscore) and in
 that package's ``__all__``. The reference libraries (filterpy, pykalman, simdkalman)
@@ -28,8 +29,8 @@ FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io'
 COMPATIBILITY = 'core'
 ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
             'rcl_interfaces')
-CLI_ONLY = ('argparse', 'matplotlib', 'subprocess')
-ORACLES = ('filterpy', 'pykalman', 'simdkalman', 'scipy')
+CLI_ONLY = ('argparse', 'matplotlib', 'scipy', 'subprocess')
+ORACLES = ('filterpy', 'pykalman', 'simdkalman')
 
 
 def _is_ros(module: str) -> bool:
@@ -175,6 +176,7 @@ EXPORTS = {'filters': ['predict', 'kalman'], 'presets': ['load_preset'],
     ('ros', 'import argparse\n', 'only kf_train.cli imports argparse'),
     ('filters', 'from matplotlib.figure import Figure\n', 'only kf_train.cli imports'),
     ('batch', 'import subprocess\n', 'only kf_train.cli imports subprocess'),
+    ('batch', 'def f():\n    from scipy import optimize\n', 'only kf_train.cli imports scipy'),
     ('batch', 'import filterpy.kalman\n', 'oracle'),
     ('cli', 'from kf_train.core import TrainEstimator\n', 'old API'),
     (None, 'from kf_train.estimator import StreamEstimator\n', 'imports point down'),
