@@ -22,6 +22,7 @@ COMMANDS = {
     'estimator': ('kf_train.ros.estimator_node', 'run the estimator node (ROS arguments follow)'),
     'demo': ('kf_train.cli.demo', 'run seed 000 over DDS with both nodes and print a report'),
     'replay': ('kf_train.cli.replay', 'run a preset filter over a CSV of measurements, offline'),
+    'simulate': ('kf_train.cli.simulate', 'write a simulated run to a bag or CSV, no DDS'),
     'plot': ('kf_train.cli.plotting', "write PNG figures: the seeds' scenarios or a replay"),
     'compare': ('kf_train.cli.compare', 'compare KF/EKF, UKF and particle filter by Monte Carlo'),
     'tune': ('kf_train.cli.tune', 'estimate q and R from measurements, write a params file'),

@@ -1,7 +1,7 @@
 """
 Floor 3, input and output: CSV codecs (csvio; polars), Parquet and bags.
 
-The bag modules (``bagio``, ``bagio_output``) need ``rosbags`` (the extra ``[bag]``):
+The bag modules (``bagio``, ``bagio_output``, ``bagio_simulation``) need ``rosbags`` (the extra ``[bag]``):
 they are imported when used (``from kf_train.io import bagio``), not here.
 """  # noqa: A005 (see below)
 
@@ -16,12 +16,12 @@ from kf_train.io.csvio import (
     parse_numbers, parse_rows, split_fields)
 
 __all__ = [
-    'bagio', 'bagio_output', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'columnar', 'csvio', 'Fields',
-    'format_labels', 'format_rows', 'format_values', 'parse_labels', 'parse_numbers',
-    'parse_rows', 'split_fields',
+    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'columnar',
+    'csvio', 'Fields', 'format_labels', 'format_rows', 'format_values', 'parse_labels',
+    'parse_numbers', 'parse_rows', 'split_fields',
 ]
 
-_LAZY = ('bagio', 'bagio_output')
+_LAZY = ('bagio', 'bagio_output', 'bagio_simulation')
 
 
 def __getattr__(name: str):

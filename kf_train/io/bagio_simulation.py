@@ -1,0 +1,145 @@
+"""
+An MCAP rosbag2 bag of a simulated run, written from plain values (no rclpy).
+
+:class:`SimulationBag` writes the simulator node's topics with the types and fields
+the node publishes (:mod:`kf_train.ros.simulator_node`, kf_train/ros/messages.py):
+
+* ``measurement``: geometry_msgs/msg/PoseWithCovarianceStamped, position in
+  ``pose.pose.position.x``, variance in ``pose.covariance[0]``, every other diagonal
+  entry 1e9, orientation identity;
+* ``ground_truth``: nav_msgs/msg/Odometry, position and velocity, variances 0;
+* ``control`` (scenarios with one): geometry_msgs/msg/AccelStamped (``accel.linear.x``)
+  or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``.
+
+Relative names are resolved in ``namespace``. The bag is written into a temporary
+directory beside the target and moved into place by :meth:`close` (a directory, or
+for a path ending in ``.mcap`` the single MCAP file); an exception inside the
+``with`` block removes it: no partial output.
+"""
+
+import os
+from pathlib import Path
+import shutil
+import tempfile
+from typing import Optional, Union
+
+from kf_train.io.bagio_output import _check_target, odometry_message
+from kf_train.io.bagio_types import ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST, TYPESTORE
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+
+NS_PER_S = 1_000_000_000
+_T = TYPESTORE.types
+
+
+def _header(stamp_ns: int, frame_id: str):
+    """Return a std_msgs/Header at ``stamp_ns``."""
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    return _T['std_msgs/msg/Header'](
+        stamp=_T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def _vector3(x: float):
+    """Return a geometry_msgs/Vector3 (x, 0, 0)."""
+    return _T['geometry_msgs/msg/Vector3'](x=float(x), y=0.0, z=0.0)
+
+
+def measurement_message(stamp_ns: int, frame_id: str, position_m: float, variance_m2: float):
+    """Return the PoseWithCovarianceStamped the simulator publishes."""
+    pose = odometry_message(stamp_ns, frame_id, '', [position_m], [[variance_m2]]).pose
+    return _T[POSE](header=_header(stamp_ns, frame_id), pose=pose)
+
+
+def control_message(kind: str, stamp_ns: int, frame_id: str, value: float):
+    """Return an AccelStamped or TwistStamped holding ``value`` along x."""
+    zero = _vector3(0.0)
+    if kind == ACCEL:
+        return _T[ACCEL](header=_header(stamp_ns, frame_id),
+                         accel=_T['geometry_msgs/msg/Accel'](linear=_vector3(value),
+                                                             angular=zero))
+    return _T[TWIST](header=_header(stamp_ns, frame_id),
+                     twist=_T['geometry_msgs/msg/Twist'](linear=_vector3(value), angular=zero))
+
+
+class SimulationBag:
+    """A simulated run being written; use as a context manager (see the module doc)."""
+
+    def __init__(self, path: Union[str, Path], control_name: Optional[str],
+                 namespace: str = ''):
+        """Create the temporary bag for ``path``; ValueError if it cannot be written."""
+        self.path = Path(path)
+        self.single_file = self.path.suffix == '.mcap'
+        _check_target(self.path, self.single_file)
+        self._temporary = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.',
+                                                dir=self.path.parent))
+        self._written = self._temporary / (self.path.stem if self.single_file
+                                           else self.path.name)
+        self.control_type = None if control_name is None else CONTROL_TYPES[control_name]
+        prefix = '/'.join(part for part in namespace.split('/') if part)
+        prefix = '/' + prefix + '/' if prefix else '/'
+        topics = [('measurement', POSE), ('ground_truth', ODOMETRY)]
+        if self.control_type is not None:
+            topics.append(('control', self.control_type))
+        try:
+            self._writer = Writer(self._written, version=9, storage_plugin=StoragePlugin.MCAP)
+            self._writer.open()
+            self._connections = {
+                name: (self._writer.add_connection(prefix + name, kind, typestore=TYPESTORE),
+                       kind) for name, kind in topics}
+        except BaseException:
+            shutil.rmtree(self._temporary, ignore_errors=True)
+            raise
+        self.counts = dict.fromkeys(self._connections, 0)
+
+    def write(self, topic: str, record_ns: int, message) -> None:
+        """Write ``message`` on ``topic`` (measurement, ground_truth, control)."""
+        connection, kind = self._connections[topic]
+        self._writer.write(connection, int(record_ns), TYPESTORE.serialize_cdr(message, kind))
+        self.counts[topic] += 1
+
+    def write_measurement(self, record_ns: int, stamp_ns: int, frame_id: str,
+                          position_m: float, variance_m2: float) -> None:
+        """Write a position measurement."""
+        self.write('measurement', record_ns,
+                   measurement_message(stamp_ns, frame_id, position_m, variance_m2))
+
+    def write_truth(self, record_ns: int, stamp_ns: int, frame_id: str, child_frame_id: str,
+                    position_m: float, velocity_mps: float) -> None:
+        """Write a ground truth odometry (variances 0)."""
+        self.write('ground_truth', record_ns, odometry_message(
+            stamp_ns, frame_id, child_frame_id, [position_m, velocity_mps], np.zeros((2, 2))))
+
+    def write_control(self, record_ns: int, stamp_ns: int, frame_id: str, value: float) -> None:
+        """Write a control (the scenario's type)."""
+        self.write('control', record_ns,
+                   control_message(self.control_type, stamp_ns, frame_id, value))
+
+    def close(self) -> Path:
+        """Finish the bag and move it into place; return its path."""
+        try:
+            self._writer.close()
+            if self.single_file:
+                os.replace(self._written / f'{self.path.stem}.mcap', self.path)
+            else:
+                os.rename(self._written, self.path)
+        except OSError as error:
+            self.abort()
+            raise ValueError(f'cannot write {self.path}: {error.strerror or error}') \
+                from None
+        shutil.rmtree(self._temporary, ignore_errors=True)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop everything written."""
+        shutil.rmtree(self._temporary, ignore_errors=True)
+
+    def __enter__(self) -> 'SimulationBag':
+        """Return self."""
+        return self
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        """Close the bag, or drop it if the block raised."""
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
