@@ -1,8 +1,9 @@
 """
 Floor 3, input and output: CSV codecs (csvio; polars), Parquet and bags.
 
-The bag modules (``bagio``, ``bagio_output``, ``bagio_simulation``) need ``rosbags`` (the extra ``[bag]``):
-they are imported when used (``from kf_train.io import bagio``), not here.
+The bag modules (``bagio``, ``bagio_output``, ``bagio_simulation``) need ``rosbags``
+(the extra ``[bag]``): they are imported when used (``from kf_train.io import bagio``),
+not here.
 """  # noqa: A005 (see below)
 
 # The name shadows the standard library's io only for code run with kf_train/ itself on
