@@ -24,7 +24,6 @@ from kf_train.batch.chunked import (
     DEFAULT_BLOCK_ROWS, Estimates, output_header, OutputBlock, resolve_horizon, RowError, Rows)
 from kf_train.batch.fleet import DEFAULT_CHUNK_SIZE, FleetState, TrainFleet
 from kf_train.batch.linear import CONVERGED_ULPS, predict_ahead, run_linear_series
-from kf_train.batch.partition import filter_partition, partition_meta
 from kf_train.batch.noise_checks import (
     ConsistencyReport, nis_consistency, prediction_errors, PredictionReport, whitened)
 from kf_train.batch.noise_likelihood import (
@@ -34,6 +33,7 @@ from kf_train.batch.noise_likelihood import (
 from kf_train.batch.noise_parameters import (
     LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
 from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
+from kf_train.batch.partition import filter_partition, partition_meta
 from kf_train.batch.series import (
     MAX_ABS_TIME_S, run_filter_series, run_series, SeriesError, SeriesResult, time_steps_s)
 from kf_train.batch.smoother import (

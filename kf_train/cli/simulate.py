@@ -167,7 +167,7 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog='kf-train simulate',
         description='Write a simulated run (measurements, controls, ground truth) to a '
-                    'rosbag2 MCAP bag or a CSV, with the simulator node\'s parameters and '
+                    "rosbag2 MCAP bag or a CSV, with the simulator node's parameters and "
                     'no DDS.',
         epilog='Parameters: ' + ', '.join(spec.name for spec in simulator_params.PARAMETERS.specs)
                + ' (kf-train simulator --ros-args ... describes them).')

@@ -36,8 +36,8 @@ def test_simulated_bag_equals_the_nodes_messages(tmp_path, scenario):
         if s.control is not None:
             kind = 'acceleration' if scenario == 'car' else 'velocity'
             builder = messages.CONTROL_MESSAGES[kind][1]
-            expected['/control'].append(serialize_message(builder(stamp, 'base_link',
-                                                                   s.control)))
+            message = builder(stamp, 'base_link', s.control)
+            expected['/control'].append(serialize_message(message))
     got = {topic: [] for topic in expected}
     kinds = {}
     with Reader(bag) as reader:

@@ -62,7 +62,7 @@ def test_train_bag_holds_the_seed_measurements_and_the_truth(tmp_path):
 @pytest.mark.parametrize('scenario,kind', [('car', ACCEL), ('robot-exact', TWIST)])
 def test_control_scenarios_write_the_control_and_the_streams_numbers(tmp_path, scenario,
                                                                      kind):
-    """car and robot write control; every value is the node's stream's, seeded."""
+    """Car and robot scenarios write control; every value is the node's stream's, seeded."""
     bag = tmp_path / 'run'
     assert simulate('--scenario', scenario, '--duration', 3, '--seed', 7, '--output', bag) == 0
     topics = read_bag(bag)
@@ -151,7 +151,7 @@ def test_params_file_sets_the_simulator(tmp_path):
 
 
 @pytest.mark.parametrize('args,message', [
-    (['--scenario', 'bus'], "scenario must be one of"),
+    (['--scenario', 'bus'], 'scenario must be one of'),
     (['-p', 'dropout_probability:=2.0'], 'dropout_probability'),
     (['-p', 'no_such:=1'], 'no_such'),
     (['--duration', '0'], '--duration'),
