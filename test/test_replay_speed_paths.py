@@ -214,7 +214,6 @@ PRESET_INDEX = {'train': 1, 'car': 2, 'robot-exact': 3, 'cv-position-velocity': 
 ROW_TOLERANCE = {'train': 5e-8}
 
 
-
 def test_bulk_reader_errors_still_name_line_and_column(tmp_path, capsys):
     """A bad cell deep in a large plain file: the message names its line and column."""
     source, target = tmp_path / 'in.csv', tmp_path / 'out.csv'
