@@ -19,6 +19,7 @@ from kf_train.batch.chunked import (
     BlockFilter, DEFAULT_BLOCK_ROWS, estimate_columns, ObjectStates, output_header,
     OutputBlock, resolve_horizon, Rows)
 from kf_train.batch.spill import ForwardSpill
+from kf_train.filters import PARTICLE_KINDS
 import numpy as np
 
 
@@ -36,7 +37,7 @@ class StreamingReplay:
         pass under ``spill_dir``, default the system's temporary directory);
         ``block_rows`` (>= 1) is the block length.
         """
-        if smooth and filt is not None and filt.kind == 'pf':
+        if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
             raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
                              'smoother does not apply to particles')
         if int(block_rows) < 1:
