@@ -88,7 +88,46 @@ def odometry_message(stamp_ns: int, frame_id: str, child_frame_id: str, x, P):
             covariance=np.array(_covariance(var_velocity))))
 
 
-class OutputBag:
+class AtomicBag:
+    """
+    A bag written into a temporary folder and moved into place only when complete.
+
+    Subclasses set ``path``, ``single_file``, ``_writer`` (an open rosbags Writer),
+    ``_written`` (the bag folder it writes) and ``_temporary`` (the folder holding it).
+    """
+
+    def close(self) -> Path:
+        """Finish the bag and move it into place; return its path."""
+        try:
+            self._writer.close()
+            if self.single_file:
+                os.replace(self._written / f'{self.path.stem}.mcap', self.path)
+            else:
+                os.rename(self._written, self.path)
+        except OSError as error:
+            self.abort()
+            raise ValueError(f'cannot write {self.path}: {error.strerror or error}') \
+                from None
+        shutil.rmtree(self._temporary, ignore_errors=True)
+        return self.path
+
+    def abort(self) -> None:
+        """Drop everything written: no output at all."""
+        shutil.rmtree(self._temporary, ignore_errors=True)
+
+    def __enter__(self) -> 'AtomicBag':
+        """Return self."""
+        return self
+
+    def __exit__(self, exc_type, exc_value, traceback) -> None:
+        """Close the bag, or drop it if the block raised."""
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+class OutputBag(AtomicBag):
     """A bag being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], namespace: str = '', frame_id: str = 'odom',
@@ -181,36 +220,6 @@ class OutputBag:
             raise _stamp_error(stamp_ns) from None
         self._write_raw(self._connections['diagnostics'], record_ns, raw)
         self.counts['diagnostics'] += 1
-
-    def close(self) -> Path:
-        """Finish the bag and move it into place; return its path."""
-        try:
-            self._writer.close()
-            if self.single_file:
-                os.replace(self._written / f'{self.path.stem}.mcap', self.path)
-            else:
-                os.rename(self._written, self.path)
-        except OSError as error:
-            self.abort()
-            raise ValueError(f'cannot write {self.path}: {error.strerror or error}') \
-                from None
-        shutil.rmtree(self._temporary, ignore_errors=True)
-        return self.path
-
-    def abort(self) -> None:
-        """Drop everything written: no output at all."""
-        shutil.rmtree(self._temporary, ignore_errors=True)
-
-    def __enter__(self) -> 'OutputBag':
-        """Return self."""
-        return self
-
-    def __exit__(self, exc_type, exc_value, traceback) -> None:
-        """Close the bag, or drop it if the block raised."""
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
 
 
 def _stamp_error(stamp_ns: int) -> ValueError:

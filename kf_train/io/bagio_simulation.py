@@ -17,13 +17,12 @@ for a path ending in ``.mcap`` the single MCAP file); an exception inside the
 ``with`` block removes it: no partial output.
 """
 
-import os
 from pathlib import Path
 import shutil
 import tempfile
 from typing import Optional, Union
 
-from kf_train.io.bagio_output import _check_target, odometry_message
+from kf_train.io.bagio_output import _check_target, AtomicBag, odometry_message
 from kf_train.io.bagio_types import ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST, TYPESTORE
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -61,7 +60,7 @@ def control_message(kind: str, stamp_ns: int, frame_id: str, value: float):
                      twist=_T['geometry_msgs/msg/Twist'](linear=_vector3(value), angular=zero))
 
 
-class SimulationBag:
+class SimulationBag(AtomicBag):
     """A simulated run being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], control_name: Optional[str],
@@ -113,33 +112,3 @@ class SimulationBag:
         """Write a control (the scenario's type)."""
         self.write('control', record_ns,
                    control_message(self.control_type, stamp_ns, frame_id, value))
-
-    def close(self) -> Path:
-        """Finish the bag and move it into place; return its path."""
-        try:
-            self._writer.close()
-            if self.single_file:
-                os.replace(self._written / f'{self.path.stem}.mcap', self.path)
-            else:
-                os.rename(self._written, self.path)
-        except OSError as error:
-            self.abort()
-            raise ValueError(f'cannot write {self.path}: {error.strerror or error}') \
-                from None
-        shutil.rmtree(self._temporary, ignore_errors=True)
-        return self.path
-
-    def abort(self) -> None:
-        """Drop everything written."""
-        shutil.rmtree(self._temporary, ignore_errors=True)
-
-    def __enter__(self) -> 'SimulationBag':
-        """Return self."""
-        return self
-
-    def __exit__(self, exc_type, exc_value, traceback) -> None:
-        """Close the bag, or drop it if the block raised."""
-        if exc_type is None:
-            self.close()
-        else:
-            self.abort()
