@@ -32,7 +32,7 @@ from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch.bank import _run_together, _split_objects, group_rows
 from kf_train.batch.linear import run_linear_series
-from kf_train.batch.series import MAX_ABS_TIME_S, run_series, SeriesError
+from kf_train.batch.series import filter_rows, MAX_ABS_TIME_S, run_series, SeriesError
 from kf_train.filters import as_covariance, as_finite_array, as_vector, NS_PER_S
 import numpy as np
 
@@ -242,22 +242,7 @@ def _as_estimates(result) -> Estimates:
 def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
                     t: np.ndarray) -> Estimates:
     """Predict and update ``filt`` row by row from its current state (no reset)."""
-    N, n = dt.shape[0], filt.preset.dim_x
-    out_x, out_P = np.empty((N, n)), np.empty((N, n, n))
-    prior_x, prior_P = np.empty((N, n)), np.empty((N, n, n))
-    pred_x = np.empty((N, n)) if horizon else None
-    pred_P = np.empty((N, n, n)) if horizon else None
-    for k in range(N):
-        u_k = None if u is None else u[k]
-        try:
-            filt.predict(dt[k], u_k)
-            prior_x[k], prior_P[k] = filt.mean, filt.covariance
-            filt.update(z[k])
-            out_x[k], out_P[k] = filt.mean, filt.covariance
-            if horizon:
-                pred_x[k], pred_P[k] = filt.predict_ahead(horizon, u_k)
-        except ValueError as error:
-            raise SeriesError(k, str(error)) from None
+    out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon)
     return Estimates(t, out_x, out_P, prior_x, prior_P, filt.preset.dynamics.F_batch(dt),
                      pred_x, pred_P)
 

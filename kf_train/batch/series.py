@@ -164,8 +164,20 @@ def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None
     """
     preset = filt.preset
     dt, z, u, horizon_s, x0, P0 = series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
-    N, n = dt.shape[0], preset.dim_x
     filt.reset(x0, P0)
+    out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon_s)
+    return SeriesResult(np.asarray(t_s, dtype=float), out_x, out_P, prior_x, prior_P,
+                        preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P)
+
+
+def filter_rows(filt, dt: np.ndarray, z, u, horizon_s):
+    """
+    Predict and update ``filt`` row by row from its current state (no reset).
+
+    Return (posterior x, P, prior x, P, predicted x, P), the predictions None without a
+    horizon; a step's ValueError becomes a SeriesError naming the row.
+    """
+    N, n = dt.shape[0], filt.preset.dim_x
     out_x, out_P = np.empty((N, n)), np.empty((N, n, n))
     prior_x, prior_P = np.empty((N, n)), np.empty((N, n, n))
     pred_x = np.empty((N, n)) if horizon_s else None
@@ -181,5 +193,4 @@ def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None
                 pred_x[k], pred_P[k] = filt.predict_ahead(horizon_s, u_k)
         except ValueError as error:
             raise SeriesError(k, str(error)) from None
-    return SeriesResult(np.asarray(t_s, dtype=float), out_x, out_P, prior_x, prior_P,
-                        preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P)
+    return out_x, out_P, prior_x, prior_P, pred_x, pred_P
