@@ -21,6 +21,9 @@ from kf_train.filters.family import (
     check_kind, DEFAULT_PARTICLES, Filter, FILTER_KINDS, FilterOptions, gaussian_model,
     GaussianFilter, make_filter, PARTICLE_KINDS, ParticlePresetFilter)
 from kf_train.filters.fast import FastRun, FastTrainFilter
+from kf_train.filters.imm import (
+    check_transition_matrix, combine, FixedTransition, IMM, IMMFilter, IMMState, make_state,
+    RateTransition)
 from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
@@ -30,6 +33,8 @@ from kf_train.filters.models import (
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
+from kf_train.filters.rail_model import (
+    make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
     RegularisedSnapshot, tempering_step)
@@ -44,22 +49,23 @@ from kf_train.filters.validation import (
 __all__ = [
     'as_covariance', 'as_duration', 'as_finite_array', 'as_matrix', 'as_vector',
     'batch_measurement', 'BatchMeasurement', 'check_kind', 'check_particles', 'check_seed',
-    'chi2_cdf', 'chi2_mean_bounds', 'chi2_quantile', 'chi2_sf', 'closed_form',
-    'constant_velocity_F', 'constant_velocity_model', 'ConstantVelocityModel',
-    'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA', 'DEFAULT_PARTICLES',
-    'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter', 'ExtendedModel',
-    'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS', 'FilterOptions',
-    'FunctionMeasurement', 'gaussian_model', 'GaussianFilter', 'kalman', 'KalmanFilter',
-    'kernel_draws', 'KERNELS',
-    'keep_positive_definite', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
-    'make_filter', 'MAX_PARTICLES', 'MerweScaledSigmaPoints', 'noise_terms_function',
-    'NoiseModel', 'NS_PER_S', 'optimal_bandwidth', 'PARTICLE_KINDS', 'ParticleFilter',
-    'ParticlePresetFilter', 'per_step_noise_terms',
+    'check_transition_matrix', 'chi2_cdf', 'chi2_mean_bounds', 'chi2_quantile', 'chi2_sf',
+    'closed_form', 'combine', 'constant_velocity_F', 'constant_velocity_model',
+    'ConstantVelocityModel', 'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA',
+    'DEFAULT_PARTICLES', 'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter',
+    'ExtendedModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
+    'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
+    'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter', 'keep_positive_definite',
+    'kernel_draws', 'KERNELS', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
+    'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
+    'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
+    'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
-    'ProcessNoise', 'psd_factor', 'RangeBearing', 'regularisation_jitter',
-    'RegularisedParticleFilter', 'RegularisedSnapshot', 'robust_cholesky', 'seconds_to_ns',
-    'Snapshot', 'SquareRoot', 'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI',
-    'unscented_moments', 'unscented_predict', 'unscented_update', 'UnscentedModel', 'update',
-    'UpdateResult', 'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',
+    'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
+    'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
+    'robust_cholesky', 'seconds_to_ns', 'Snapshot', 'SquareRoot', 'STATE_NAMES',
+    'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
+    'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
+    'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',
     'WhiteNoiseAcceleration', 'wrap_angle',
 ]

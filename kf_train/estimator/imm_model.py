@@ -1,0 +1,72 @@
+"""
+An IMM behind the pure ``predict(x, P, dt_s, u)`` / ``update(x, P, z, R)`` interface.
+
+The streaming estimator (kf_train.estimator.estimator) keeps its state as (x, P) pairs and
+rewinds by going back to an older pair; its models are pure functions of (x, P).
+An IMM's state is more than (x, P): per-mode means, covariances and probabilities.
+:class:`IMMModel` returns the combined (x, P) and remembers, under the id of the
+returned mean, the whole :class:`~kf_train.filters.imm.IMMState` behind it (the
+particle filter's adapter in the estimator does the same with its particles). A step
+given a mean it returned continues from that state, so rewinding to an old (x, P)
+and replaying repeats the original steps bit for bit; a mean it never returned (an
+initialisation, ``set_state``) starts every mode at (x, P) with the initial mode
+probabilities. States are immutable, so remembering one costs a reference.
+"""
+
+from typing import Dict, Optional, Tuple
+import weakref
+
+from kf_train.filters import IMM, IMMState, UpdateResult
+import numpy as np
+
+
+class IMMModel:
+    """Pure (x, P) steps of an IMM; see the module docstring."""
+
+    def __init__(self, imm: IMM, H, R, state_names, measurement_names=('position',),
+                 probabilities=None, states: Optional[Dict[int, tuple]] = None):
+        """Wrap ``imm`` (its modes measure z = H x with default noise R)."""
+        self.imm = imm
+        self.H = np.array(H, dtype=float)
+        self.R = np.array(R, dtype=float)
+        self.state_names = tuple(state_names)
+        self.measurement_names = tuple(measurement_names)
+        self.control_names = ()
+        self.dim_x, self.dim_z = len(self.state_names), len(self.measurement_names)
+        self.probabilities = probabilities
+        self.states = {} if states is None else states
+
+    def state_of(self, x: np.ndarray, P: np.ndarray) -> IMMState:
+        """Return the IMM state behind x (all modes at (x, P) if x is not one of ours)."""
+        kept = self.states.get(id(x))
+        if kept is not None and kept[0]() is x:
+            return kept[1]
+        return self.imm.initial_state(x, P, self.probabilities)
+
+    def _keep(self, state: IMMState) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) of ``state``, x remembering the state."""
+        x, P = self.imm.estimate(state)
+        key = id(x)
+        # The weak reference tells x from a later array that reuses its id; the entry
+        # goes when x is freed, since nothing can rewind to it any more.
+        self.states[key] = (weakref.ref(x), state)
+        weakref.finalize(x, self.states.pop, key, None)
+        return x, P
+
+    def predict(self, x, P, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) after an IMM prediction over dt_s."""
+        return self._keep(self.imm.predict(self.state_of(x, P), dt_s, u))
+
+    def predict_ahead(self, x, P, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) dt_s ahead (the IMM's own look-ahead)."""
+        return self.imm.predict_ahead(self.state_of(x, P), dt_s, u)
+
+    def update(self, x, P, z, R=None) -> Tuple[np.ndarray, np.ndarray, UpdateResult]:
+        """Return the combined (x, P) after z, and the mixture's innovation statistics."""
+        state, result = self.imm.update(self.state_of(x, P), z, R)
+        x, P = self._keep(state)
+        return x, P, result
+
+    def mode_probabilities(self, x, P) -> np.ndarray:
+        """Return the mode probabilities behind x (the initial ones if none)."""
+        return self.state_of(x, P).probabilities.copy()

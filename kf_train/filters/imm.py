@@ -1,0 +1,389 @@
+"""
+Interacting multiple models (IMM): a bank of Kalman filters, one per motion regime.
+
+Notation follows Bar-Shalom, Li and Kirubarajan (2001) and filterpy: N modes, each
+with its own model (``predict(x, P, dt_s, u)`` and ``update(x, P, z, R)``, e.g. a
+:class:`~kf_train.filters.models.LinearModel`, whose arithmetic is
+:mod:`kf_train.filters.kalman`'s, Joseph form); mode probabilities μ (N,); the Markov
+transition matrix Π with Π[i, j] = P(mode j now | mode i before) (rows sum to 1,
+filterpy's ``M``). One cycle:
+
+* mixing: c̄_j = Σ_i Π_ij μ_i, ω_ij = Π_ij μ_i / c̄_j, and each mode starts from the
+  moment-matched mixture x0_j = Σ_i ω_ij x_i, P0_j = Σ_i ω_ij (P_i + d dᵀ),
+  d = x_i - x0_j;
+* mode-matched prediction of each mode from (x0_j, P0_j); the predicted mode
+  probabilities are c̄;
+* mode-matched update of each mode; μ_j ∝ c̄_j · N(y_j; 0, S_j);
+* the estimate: x = Σ μ_j x_j, P = Σ μ_j (P_j + (x_j - x)(x_j - x)ᵀ).
+
+The state is an immutable :class:`IMMState` (per-mode means, covariances and
+probabilities, read-only arrays), so a snapshot for an out-of-sequence rewind is the
+state object itself. :class:`IMM` holds the models and computes; :class:`IMMFilter`
+holds a state and has the interface of :class:`kf_train.filters.family.Filter`
+(predict, update, predict_ahead, mean, covariance, snapshot, restore, reset, copy).
+
+Two hooks let a model use what it knows about its regimes (see
+:mod:`kf_train.filters.rail_model`): ``transition(dt_s, state)`` may depend on the state
+(a train can only stop when it is slow), and ``entry(j, x, P)`` transforms a
+component that switches into mode j (a new regime brings its own commanded
+acceleration). Without them (:class:`FixedTransition` and no entry), the IMM is
+filterpy's ``IMMEstimator`` to rounding. Likelihoods are kept as logarithms, so a
+mode whose likelihood underflows a float (filterpy then substitutes 2.2e-308) still
+gets its exact probability.
+"""
+
+import math
+from typing import Callable, NamedTuple, Optional, Sequence, Tuple
+
+from kf_train.filters.kalman import UpdateResult
+from kf_train.filters.validation import as_covariance, as_duration, as_finite_array, as_vector
+import numpy as np
+
+_LOG_2PI = math.log(2.0 * math.pi)
+# Rows of a transition matrix must sum to 1 to within this.
+_ROW_SUM_TOLERANCE = 1e-9
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    """Return ``array`` marked read-only (it is owned by an IMMState)."""
+    array.flags.writeable = False
+    return array
+
+
+class IMMState(NamedTuple):
+    """The whole state of an IMM: per-mode estimates and mode probabilities."""
+
+    means: np.ndarray
+    """Mode-conditioned means (N, n), read-only."""
+    covariances: np.ndarray
+    """Mode-conditioned covariances (N, n, n), read-only."""
+    probabilities: np.ndarray
+    """Mode probabilities (N,), summing to 1, read-only."""
+
+
+def make_state(means, covariances, probabilities) -> IMMState:
+    """Return a checked, read-only IMMState (probabilities are normalised)."""
+    means = as_finite_array('means', means)
+    if means.ndim != 2 or means.shape[0] < 1:
+        raise ValueError(f'means must have shape (N, n), got {means.shape}')
+    count, n = means.shape
+    covariances = as_finite_array('covariances', covariances)
+    if covariances.shape != (count, n, n):
+        raise ValueError(f'covariances must have shape {(count, n, n)}, got '
+                         f'{covariances.shape}')
+    covariances = np.array([as_covariance(f'covariances[{i}]', c, n)
+                            for i, c in enumerate(covariances)])
+    probabilities = as_vector('probabilities', probabilities, count)
+    total = float(np.sum(probabilities))
+    if np.any(probabilities < 0.0) or not total > 0.0:
+        raise ValueError(f'probabilities must be >= 0 with a positive sum, got '
+                         f'{probabilities.tolist()}')
+    return IMMState(_read_only(means.copy()), _read_only(covariances),
+                    _read_only(probabilities / total))
+
+
+def check_transition_matrix(matrix, count: int) -> np.ndarray:
+    """Return a (count, count) row-stochastic matrix, else raise ValueError."""
+    matrix = as_finite_array('transition matrix', matrix)
+    if matrix.shape != (count, count):
+        raise ValueError(f'transition matrix must have shape {(count, count)}, got '
+                         f'{matrix.shape}')
+    if np.any(matrix < 0.0) or np.max(np.abs(matrix.sum(axis=1) - 1.0)) > _ROW_SUM_TOLERANCE:
+        raise ValueError(f'transition matrix must be >= 0 with rows summing to 1, got '
+                         f'{matrix.tolist()}')
+    return matrix
+
+
+class FixedTransition:
+    """Π the same for every prediction, whatever dt (filterpy's convention)."""
+
+    def __init__(self, matrix):
+        """Keep a square row-stochastic matrix."""
+        matrix = as_finite_array('transition matrix', matrix)
+        self.matrix = _read_only(check_transition_matrix(
+            matrix, matrix.shape[0] if matrix.ndim == 2 else 0).copy())
+
+    def __call__(self, dt_s: float, state: IMMState) -> np.ndarray:
+        """Return Π."""
+        return self.matrix
+
+
+class RateTransition:
+    """
+    Π(dt) from switching rates [1/s]: a continuous-time Markov chain, first jump only.
+
+    Mode i is left at rate r_i = Σ_j rates[i, j] (j ≠ i), to j with probability
+    rates[i, j] / r_i: Π_ii = e^(-r_i dt), Π_ij = (1 - e^(-r_i dt)) · rates[i, j] / r_i.
+    This is stochastic for every dt >= 0 (Π(0) = I) and neglects two switches within
+    one dt, which at rates of 1/s and dt = 0.1 s is a 0.5 % effect.
+    """
+
+    def __init__(self, rates):
+        """Keep a square matrix of rates >= 0 (the diagonal is ignored)."""
+        rates = as_finite_array('rates', rates)
+        if rates.ndim != 2 or rates.shape[0] != rates.shape[1] or np.any(rates < 0.0):
+            raise ValueError(f'rates must be a square matrix of values >= 0, got '
+                             f'{rates.tolist()}')
+        rates = rates.copy()
+        np.fill_diagonal(rates, 0.0)
+        self.rates = _read_only(rates)
+
+    def matrix(self, dt_s: float, rates: Optional[np.ndarray] = None) -> np.ndarray:
+        """Return Π(dt) for these rates (or ``rates``, e.g. scaled by the state)."""
+        rates = self.rates if rates is None else rates
+        leave = rates.sum(axis=1)                        # r_i
+        stay = np.exp(-leave * dt_s)                     # Π_ii = e^(-r_i dt)
+        with np.errstate(invalid='ignore', divide='ignore'):
+            share = np.where(leave[:, None] > 0.0, rates / leave[:, None], 0.0)
+        matrix = (1.0 - stay)[:, None] * share           # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
+        matrix[np.diag_indices_from(matrix)] = stay
+        return matrix
+
+    def __call__(self, dt_s: float, state: IMMState) -> np.ndarray:
+        """Return Π(dt_s)."""
+        return self.matrix(dt_s)
+
+
+def combine(means: np.ndarray, covariances: np.ndarray,
+            probabilities: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """Return the moment-matched (x, P) of a Gaussian mixture."""
+    x = probabilities.dot(means)                                    # x = Σ μ_j x_j
+    d = means - x
+    P = np.einsum('j,jab->ab', probabilities, covariances) + \
+        np.einsum('j,ja,jb->ab', probabilities, d, d)                # P = Σ μ_j (P_j + d dᵀ)
+    return x, 0.5 * (P + P.T)
+
+
+def log_likelihood(result: UpdateResult) -> float:
+    """Return log N(y; 0, S) of an update's innovation: -(NIS + log det(2π S)) / 2."""
+    S = result.innovation_covariance
+    if S.shape == (1, 1):
+        log_det = math.log(float(S[0, 0]))
+    else:
+        sign, log_det = np.linalg.slogdet(S)
+        if sign <= 0.0:
+            raise ValueError(f'innovation covariance is not positive definite: {S.tolist()}')
+    return -0.5 * (result.nis + log_det + S.shape[0] * _LOG_2PI)
+
+
+class IMM:
+    """
+    The IMM's models and arithmetic; every method is pure (states in, states out).
+
+    ``modes``: one model per mode, each with ``predict(x, P, dt_s, u)`` and
+    ``update(x, P, z, R)`` returning ``(x, P, UpdateResult)``. ``transition``: a
+    callable ``(dt_s, state) -> Π`` (:class:`FixedTransition`,
+    :class:`RateTransition` or a model's own). ``entry``: optional
+    ``(j, x, P) -> (x, P)`` applied to each component that switches into mode j.
+    """
+
+    def __init__(self, modes: Sequence, transition: Callable, mode_names=None,
+                 entry: Optional[Callable] = None):
+        """Keep the models; names default to mode0, mode1, …."""
+        if len(modes) < 1:
+            raise ValueError('an IMM needs at least one mode')
+        self.modes = tuple(modes)
+        self.transition = transition
+        self.entry = entry
+        names = tuple(mode_names) if mode_names is not None else tuple(
+            f'mode{i}' for i in range(len(self.modes)))
+        if len(names) != len(self.modes) or len(set(names)) != len(names):
+            raise ValueError(f'mode_names must be {len(self.modes)} distinct names, got '
+                             f'{names!r}')
+        self.mode_names = names
+
+    @property
+    def mode_count(self) -> int:
+        """Return the number of modes N."""
+        return len(self.modes)
+
+    def initial_state(self, x0, P0, probabilities=None) -> IMMState:
+        """Return every mode at (x0, P0), with ``probabilities`` (uniform by default)."""
+        x0 = as_vector('x0', x0)
+        P0 = as_covariance('P0', P0, x0.shape[0])
+        count = self.mode_count
+        if probabilities is None:
+            probabilities = np.full(count, 1.0 / count)
+        return make_state(np.tile(x0, (count, 1)), np.tile(P0, (count, 1, 1)), probabilities)
+
+    def estimate(self, state: IMMState) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) of a state."""
+        return combine(state.means, state.covariances, state.probabilities)
+
+    def mix(self, state: IMMState, matrix: np.ndarray):
+        """Return (c̄, mixed means, mixed covariances) for transition matrix Π."""
+        mu, means, covs = state.probabilities, state.means, state.covariances
+        count = self.mode_count
+        matrix = check_transition_matrix(matrix, count)
+        cbar = mu.dot(matrix)                                   # c̄_j = Σ_i Π_ij μ_i
+        mixed_x = np.empty_like(means)
+        mixed_P = np.empty_like(covs)
+        for j in range(count):
+            if cbar[j] > 0.0:
+                weights = matrix[:, j] * mu / cbar[j]           # ω_ij = Π_ij μ_i / c̄_j
+            else:  # unreachable mode: keep its own estimate (its probability is 0)
+                weights = np.zeros(count)
+                weights[j] = 1.0
+            xs, Ps = self._entering(j, means, covs, weights)
+            mixed_x[j], mixed_P[j] = combine(xs, Ps, weights)  # x0_j, P0_j
+        return cbar, mixed_x, mixed_P
+
+    def _entering(self, j: int, means: np.ndarray, covs: np.ndarray, weights: np.ndarray):
+        """Return the components as they enter mode j (the entry hook for i != j)."""
+        if self.entry is None:
+            return means, covs
+        xs, Ps = means.copy(), covs.copy()
+        for i in range(self.mode_count):
+            if i != j and weights[i] > 0.0:
+                xs[i], Ps[i] = self.entry(j, means[i], covs[i])
+        return xs, Ps
+
+    def predict(self, state: IMMState, dt_s: float, u=None) -> IMMState:
+        """Return the state predicted over dt_s: mixing, then each mode's prediction."""
+        dt_s = as_duration('dt_s', dt_s)
+        cbar, mixed_x, mixed_P = self.mix(state, self.transition(dt_s, state))
+        means = np.empty_like(mixed_x)
+        covs = np.empty_like(mixed_P)
+        for j, mode in enumerate(self.modes):
+            means[j], covs[j] = mode.predict(mixed_x[j], mixed_P[j], dt_s, u)
+        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / cbar.sum()))
+
+    def predict_ahead(self, state: IMMState, dt_s: float, u=None
+                      ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) dt_s ahead: one IMM prediction, moment-matched."""
+        return self.estimate(self.predict(state, dt_s, u))
+
+    def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
+        """
+        Return the state corrected by z, and the innovation of the whole mixture.
+
+        The returned UpdateResult is the moment-matched one: predicted measurement
+        ẑ = Σ c̄_j ẑ_j, S = Σ c̄_j (S_j + (ẑ_j - ẑ)(ẑ_j - ẑ)ᵀ), NIS = yᵀ S⁻¹ y, and the
+        gain P_xz S⁻¹, so that a χ² gate treats the IMM like one filter.
+        """
+        prior_mu = state.probabilities
+        means = np.empty_like(state.means)
+        covs = np.empty_like(state.covariances)
+        results = []
+        for j, mode in enumerate(self.modes):
+            means[j], covs[j], result = mode.update(
+                state.means[j], state.covariances[j], z, R)
+            results.append(result)
+        logs = np.array([log_likelihood(result) for result in results])
+        with np.errstate(divide='ignore'):
+            weights = np.log(prior_mu) + logs                  # log(c̄_j Λ_j)
+        weights = np.exp(weights - np.max(weights))
+        posterior = weights / weights.sum()                    # μ_j = c̄_j Λ_j / Σ
+        new_state = IMMState(_read_only(means), _read_only(covs), _read_only(posterior))
+        return new_state, self._mixture_innovation(state, results)
+
+    @staticmethod
+    def _mixture_innovation(prior: IMMState, results) -> UpdateResult:
+        """Return the moment-matched innovation statistics of the prior mixture."""
+        c = prior.probabilities
+        y_modes = np.array([r.innovation for r in results])             # y_j = z - ẑ_j
+        y = c.dot(y_modes)                                              # y = z - Σ c̄_j ẑ_j
+        d = y_modes - y
+        S = np.einsum('j,jab->ab', c, np.array([r.innovation_covariance for r in results]))
+        S = S + np.einsum('j,ja,jb->ab', c, d, d)
+        S = 0.5 * (S + S.T)
+        x_bar = c.dot(prior.means)
+        # P_xz = Σ c̄_j (P_j Hᵀ + (x_j - x̄)(ẑ_j - ẑ)ᵀ), with P_j Hᵀ = K_j S_j
+        # and ẑ_j - ẑ = -(y_j - y).
+        Pxz = sum(cj * (r.gain.dot(r.innovation_covariance) - np.outer(xj - x_bar, dj))
+                  for cj, r, xj, dj in zip(c, results, prior.means, d))
+        gain = np.linalg.solve(S, Pxz.T).T                              # K = P_xz S⁻¹
+        nis = float(y.dot(np.linalg.solve(S, y)))                       # yᵀ S⁻¹ y
+        return UpdateResult(y, S, nis, gain)
+
+
+class IMMFilter:
+    """
+    An IMM holding its state, with the interface of :class:`kf_train.filters.family.Filter`.
+
+    ``predict``/``update`` replace the state only once the whole step succeeded;
+    ``predict_ahead`` never changes it; ``snapshot()`` is the immutable state itself.
+    """
+
+    kind = 'imm'
+
+    def __init__(self, imm: IMM, x0, P0, probabilities=None):
+        """Start every mode at (x0, P0) with ``probabilities`` (uniform by default)."""
+        self.imm = imm
+        x0 = as_vector('x0', x0).copy()
+        self._initial = (x0, as_covariance('P0', P0, x0.shape[0]), probabilities)
+        self.reset()
+
+    @property
+    def dim_x(self) -> int:
+        """Return the number of states n."""
+        return self._state.means.shape[1]
+
+    @property
+    def mode_names(self) -> Tuple[str, ...]:
+        """Return the mode names."""
+        return self.imm.mode_names
+
+    @property
+    def mode_probabilities(self) -> np.ndarray:
+        """Return a copy of the mode probabilities (after an update: the posterior)."""
+        return self._state.probabilities.copy()
+
+    @property
+    def state(self) -> IMMState:
+        """Return the whole (immutable) state."""
+        return self._state
+
+    @property
+    def mean(self) -> np.ndarray:
+        """Return the combined mean."""
+        return self.imm.estimate(self._state)[0]
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Return the combined covariance."""
+        return self.imm.estimate(self._state)[1]
+
+    x = mean
+    P = covariance
+
+    def reset(self, x0=None, P0=None, probabilities=None) -> None:
+        """Start again from (x0, P0) (the initial ones by default)."""
+        initial_x, initial_P, initial_mu = self._initial
+        self._state = self.imm.initial_state(
+            initial_x if x0 is None else x0, initial_P if P0 is None else P0,
+            initial_mu if probabilities is None else probabilities)
+
+    def predict(self, dt_s: float, u=None) -> None:
+        """Propagate over dt_s."""
+        self._state = self.imm.predict(self._state, dt_s, u)
+
+    def update(self, z, R=None) -> UpdateResult:
+        """Correct with z; return the mixture's innovation statistics."""
+        self._state, result = self.imm.update(self._state, z, R)
+        return result
+
+    def predict_ahead(self, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) dt_s ahead; the filter is unchanged."""
+        return self.imm.predict_ahead(self._state, dt_s, u)
+
+    def snapshot(self) -> IMMState:
+        """Return the state (immutable, so keeping it is enough)."""
+        return self._state
+
+    def restore(self, snapshot: IMMState) -> None:
+        """Return to a snapshot (checked against this IMM's shape)."""
+        if not isinstance(snapshot, IMMState) or snapshot.means.shape != self._state.means.shape:
+            raise ValueError('snapshot must be an IMMState of this filter')
+        self._state = snapshot
+
+    def copy(self) -> 'IMMFilter':
+        """Return an independent filter in the same state."""
+        other = object.__new__(IMMFilter)
+        other.imm, other._initial, other._state = self.imm, self._initial, self._state
+        return other
+
+    def diagnostics(self):
+        """Return the mode probabilities by name."""
+        return {f'p_{name}': float(p)
+                for name, p in zip(self.imm.mode_names, self._state.probabilities)}

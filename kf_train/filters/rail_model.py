@@ -1,0 +1,394 @@
+"""
+A train's motion as four regimes (stand, accelerate, cruise, brake) in one IMM.
+
+What is known about trains, and how the model uses it:
+
+* **Acceleration changes smoothly** (jerk-limited). Every moving regime has the state
+  [position p, velocity v, acceleration a, commanded acceleration ℓ]: the drive or the
+  brake settles a on ℓ with a response time τ, ȧ = (ℓ - a)/τ, and ℓ itself holds
+  (ℓ̇ = 0). A white noise q_a on ȧ and a random walk q_ℓ on ℓ absorb what this does
+  not describe (coasting, gradients, a driver's notches). The dynamics are linear,
+  with the exact transition F(dt) below, so each regime is a Kalman filter
+  (:class:`~kf_train.filters.models.LinearModel`, Joseph-form update).
+* **Regimes have their own acceleration, and a train its own capabilities.** A train
+  that starts to accelerate commands about its traction capability A, one that
+  brakes about its service braking -B, a cruising one about 0. A and B are states
+  too (constant but for a slow drift, prior N(0.8, 0.35²) and N(0.9, 0.35²) m/s²):
+  when a mixture component switches into 'accelerate', its ℓ becomes A plus a
+  N(0, plateau_std²) difference (:meth:`RailModel.entry`, an exact linear
+  transformation of the Gaussian, so ℓ stays correlated with A); p, v and a carry
+  over, because a switch changes the command, not the motion. Each acceleration or
+  braking phase then teaches the filter A or B through that correlation, and the
+  next departure or brake is recognised sooner.
+* **Stopped means stopped.** The stand regime holds p and sets v = a = ℓ = 0 with no
+  uncertainty (F = diag(1, 0, 0, 0, 1, 1)). Only a braking train can stop, and only when
+  it is slow: its rate of switching to stand is scaled by P(v <= stop_speed_mps)
+  under its own estimate, so a noisy measurement cannot 'stop' a train at speed.
+* **Trains do not reverse.** The prediction ahead (:meth:`RailModel.predict_ahead`)
+  follows each regime's mean path and holds the train where its velocity reaches 0,
+  so no regime predicts going backwards, and the mixture's predicted position is
+  never behind its current one.
+
+The state is [p, v, a, ℓ, A, B]. The 2-s prediction is the whole model's: each
+regime's own prediction from its current estimate, held on the no-reversal path, and
+the moment-matched mixture of them with the current regime probabilities (mean and
+covariance). A switch of regime within the horizon is left to each regime's process
+noise rather than mixed in at the start of the horizon: mixing a switch at t = 0
+counts it at its full 2-s effect, when on average it acts for a fraction of that;
+measured on the development runs that costs 1-2 % of RMSE (docs/rail.md).
+:class:`RailModelParameters` holds the defaults; they are physical figures for
+passenger trains, not tuned to one run (docs/rail.md).
+"""
+
+from dataclasses import asdict, dataclass
+import math
+from typing import Dict, Tuple
+
+from kf_train.filters.imm import combine, IMM, IMMFilter, IMMState, RateTransition
+from kf_train.filters.models import LinearModel
+from kf_train.filters.validation import as_duration
+import numpy as np
+
+MODE_NAMES = ('stand', 'accelerate', 'cruise', 'brake')
+STATE_NAMES = ('position', 'velocity', 'acceleration', 'commanded_acceleration',
+               'acceleration_capability', 'braking_capability')
+DIM_X = len(STATE_NAMES)
+STAND, ACCELERATE, CRUISE, BRAKE = range(4)
+_H = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+# Below this x = dt/τ the φ functions use their Taylor series (no cancellation).
+_SERIES_BELOW = 0.1
+_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
+_CACHE_SIZE = 64
+
+
+@dataclass(frozen=True)
+class RailModelParameters:
+    """The rail model's figures; the defaults are for passenger trains (docs/rail.md)."""
+
+    noise_std_m: float = 1.0
+    """Measurement noise σ (R = σ²) when an update gives no R [m]."""
+    response_time_s: float = 0.7
+    """τ: how fast a settles on the commanded acceleration (jerk-limited ramps) [s]."""
+    acceleration_noise: float = 1e-4
+    """q_a: white noise on ȧ [m²/s⁵]."""
+    command_noise: float = 1e-4
+    """q_ℓ: random walk of the commanded acceleration [m²/s⁵]."""
+    accelerate_mps2: float = 0.8
+    """Prior mean of the traction capability A [m/s²]."""
+    accelerate_std_mps2: float = 0.35
+    """Its prior standard deviation [m/s²]."""
+    brake_mps2: float = 0.9
+    """Prior mean of the service braking B (ℓ = -B when braking) [m/s²]."""
+    brake_std_mps2: float = 0.35
+    """Its prior standard deviation [m/s²]."""
+    plateau_std_mps2: float = 0.1
+    """How far one phase's commanded acceleration may be from A (or -B) [m/s²]."""
+    cruise_std_mps2: float = 0.05
+    """Prior standard deviation of the commanded acceleration in 'cruise' (mean 0)."""
+    capability_noise: float = 1e-6
+    """Random walk of A and B (load, adhesion) [m²/s⁵]."""
+    departure_rate_hz: float = 1.0 / 30.0
+    """stand -> accelerate: one over a typical dwell [1/s]."""
+    accelerate_to_cruise_rate_hz: float = 1.0 / 15.0
+    """accelerate -> cruise: line speed reached [1/s]."""
+    accelerate_to_brake_rate_hz: float = 1.0 / 200.0
+    """accelerate -> brake: rare (a signal) [1/s]."""
+    cruise_to_accelerate_rate_hz: float = 1.0 / 100.0
+    """cruise -> accelerate: after a slow zone [1/s]."""
+    cruise_to_brake_rate_hz: float = 1.0 / 60.0
+    """cruise -> brake: for a station or a slow zone, the usual end of a cruise [1/s]."""
+    brake_to_cruise_rate_hz: float = 1.0 / 30.0
+    """brake -> cruise: a slow zone's speed reached [1/s]."""
+    brake_to_accelerate_rate_hz: float = 1.0 / 100.0
+    """brake -> accelerate: rare [1/s]."""
+    stop_rate_hz: float = 1.0
+    """brake -> stand, for a train slower than stop_speed_mps [1/s]."""
+    stop_speed_mps: float = 0.3
+    """Speed below which a braking train may be standing [m/s]."""
+    stand_noise: float = 0.0
+    """Random walk of a standing train's position [m²/s] (0: it does not move)."""
+    initial_velocity_std_mps: float = 20.0
+    """Standard deviation of the velocity at the first measurement [m/s]."""
+    initial_acceleration_std_mps2: float = 1.0
+    """Standard deviation of a and ℓ at the first measurement [m/s²]."""
+
+    def __post_init__(self):
+        """Check every figure: finite, >= 0, and > 0 where it divides."""
+        for name, value in asdict(self).items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                    or not math.isfinite(value) or value < 0.0:
+                raise ValueError(f'{name} must be a finite number >= 0, got {value!r}')
+            object.__setattr__(self, name, float(value))
+        for name in ('noise_std_m', 'response_time_s', 'stop_speed_mps'):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
+
+    def rates(self) -> np.ndarray:
+        """Return the switching rates [1/s], rates[i, j] from mode i to j (stop excluded)."""
+        rates = np.zeros((4, 4))
+        rates[STAND, ACCELERATE] = self.departure_rate_hz
+        rates[ACCELERATE, CRUISE] = self.accelerate_to_cruise_rate_hz
+        rates[ACCELERATE, BRAKE] = self.accelerate_to_brake_rate_hz
+        rates[CRUISE, ACCELERATE] = self.cruise_to_accelerate_rate_hz
+        rates[CRUISE, BRAKE] = self.cruise_to_brake_rate_hz
+        rates[BRAKE, CRUISE] = self.brake_to_cruise_rate_hz
+        rates[BRAKE, ACCELERATE] = self.brake_to_accelerate_rate_hz
+        return rates
+
+    def initial_covariance(self, position_variance_m2: float) -> np.ndarray:
+        """Return P at a first position measurement with variance position_variance_m2."""
+        a = self.initial_acceleration_std_mps2 ** 2
+        return np.diag([position_variance_m2, self.initial_velocity_std_mps ** 2, a, a,
+                        self.accelerate_std_mps2 ** 2, self.brake_std_mps2 ** 2])
+
+
+def _phi(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """
+    Return φ1 = 1 - e^-x, φ2 = x - φ1 and φ3 = x²/2 - φ2 for x >= 0.
+
+    φ2 ≈ x²/2 and φ3 ≈ x³/6 for small x, where the differences cancel; there the
+    Taylor series Σ (-1)^k x^k / k! (k >= 2, resp. k >= 3) is used instead.
+    """
+    x = np.asarray(x, dtype=float)
+    phi1 = -np.expm1(-x)
+    phi2 = x - phi1
+    phi3 = x * x / 2.0 - phi2
+    small = x < _SERIES_BELOW
+    if np.any(small):
+        xs = x[small]
+        term = xs * xs / 2.0           # x² / 2!
+        series2 = np.zeros_like(xs)
+        series3 = np.zeros_like(xs)
+        for k in range(2, 12):         # 10 terms: error < x¹²/12! < 1e-21 for x < 0.1
+            series2 += term if k % 2 == 0 else -term
+            if k >= 3:
+                series3 += term if k % 2 == 1 else -term
+            term = term * xs / (k + 1)
+        phi2 = np.where(small, 0.0, phi2)
+        phi3 = np.where(small, 0.0, phi3)
+        phi2[small], phi3[small] = series2, series3
+    return phi1, phi2, phi3
+
+
+def relaxation_transition(dt_s, tau_s: float) -> np.ndarray:
+    """
+    Return F(dt) of ṗ = v, v̇ = a, ȧ = (ℓ - a)/τ, ℓ̇ = 0 for each dt: shape (k, 4, 4).
+
+    With x = dt/τ: a(dt) = e^-x a + φ1 ℓ, v(dt) = v + τ φ1 a + τ φ2 ℓ,
+    p(dt) = p + dt v + τ² φ2 a + τ² φ3 ℓ (exact solution of the linear ODE).
+    """
+    dt = np.atleast_1d(np.asarray(dt_s, dtype=float))
+    phi1, phi2, phi3 = _phi(dt / tau_s)
+    F = np.zeros(dt.shape + (4, 4))
+    F[:, 0, 0] = F[:, 1, 1] = F[:, 3, 3] = 1.0
+    F[:, 0, 1] = dt
+    F[:, 0, 2], F[:, 0, 3] = tau_s ** 2 * phi2, tau_s ** 2 * phi3
+    F[:, 1, 2], F[:, 1, 3] = tau_s * phi1, tau_s * phi2
+    F[:, 2, 2], F[:, 2, 3] = 1.0 - phi1, phi1
+    return F
+
+
+def relaxation_noise(dt_s: float, tau_s: float, q_a: float, q_l: float) -> np.ndarray:
+    """
+    Return Q(dt) = ∫₀^dt F(s) diag(0, 0, q_a, q_ℓ) F(s)ᵀ ds.
+
+    Gauss-Legendre, 8 nodes on panels no wider than τ/2: the integrand is a
+    polynomial of degree <= 4 times e^(-ks/τ), k <= 2, which 8 nodes integrate to
+    rounding on such a panel.
+    """
+    panels = max(1, int(math.ceil(dt_s / (0.5 * tau_s))))
+    edges = np.linspace(0.0, dt_s, panels + 1)
+    half = 0.5 * np.diff(edges)
+    s = ((edges[:-1] + half)[:, None] + half[:, None] * _GL_NODES).ravel()
+    w = (half[:, None] * _GL_WEIGHTS).ravel()
+    F = relaxation_transition(s, tau_s)
+    col_a, col_l = F[:, :, 2], F[:, :, 3]              # how noise on a and on ℓ spreads
+    Q = q_a * np.einsum('k,ka,kb->ab', w, col_a, col_a) + \
+        q_l * np.einsum('k,ka,kb->ab', w, col_l, col_l)
+    return 0.5 * (Q + Q.T)
+
+
+class _Cached:
+    """dt -> matrix, remembering the last few dt values (a stream repeats its period)."""
+
+    def __init__(self, function):
+        """Wrap ``function(dt) -> read-only matrix``."""
+        self.function = function
+        self.values: Dict[float, np.ndarray] = {}
+
+    def __call__(self, dt_s: float) -> np.ndarray:
+        """Return function(dt_s), computed once per dt."""
+        value = self.values.get(dt_s)
+        if value is None:
+            value = self.function(as_duration('dt', dt_s))
+            value.flags.writeable = False
+            if len(self.values) >= _CACHE_SIZE:
+                self.values.pop(next(iter(self.values)))
+            self.values[dt_s] = value
+        return value
+
+
+def _stand_model(params: RailModelParameters) -> LinearModel:
+    """Return the stand regime: p held (plus stand_noise), v = a = ℓ = 0 exactly, A, B kept."""
+    F = np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0])
+    F.flags.writeable = False
+    q = params.capability_noise
+    return LinearModel(lambda dt: F,
+                       _Cached(lambda dt: np.diag([params.stand_noise * dt, 0.0, 0.0, 0.0,
+                                                   q * dt, q * dt])),
+                       _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
+
+
+def _moving_transition(dt_s: float, tau_s: float) -> np.ndarray:
+    """Return the 6x6 F(dt) of a moving regime: the relaxation, A and B held."""
+    F = np.eye(DIM_X)
+    F[:4, :4] = relaxation_transition(dt_s, tau_s)[0]
+    return F
+
+
+def _moving_noise(dt_s: float, params: RailModelParameters) -> np.ndarray:
+    """Return the 6x6 Q(dt) of a moving regime: the relaxation's, and A, B's drift."""
+    Q = np.zeros((DIM_X, DIM_X))
+    Q[:4, :4] = relaxation_noise(dt_s, params.response_time_s, params.acceleration_noise,
+                                 params.command_noise)
+    Q[4, 4] = Q[5, 5] = params.capability_noise * dt_s
+    return Q
+
+
+def _moving_model(params: RailModelParameters) -> LinearModel:
+    """Return a moving regime's Kalman model (all three share the dynamics)."""
+    tau = params.response_time_s
+    return LinearModel(_Cached(lambda dt: _moving_transition(dt, tau)),
+                       _Cached(lambda dt: _moving_noise(dt, params)),
+                       _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
+
+
+def _normal_cdf(x: float) -> float:
+    """Return Φ(x), the standard normal distribution function."""
+    return 0.5 * math.erfc(-x / math.sqrt(2.0))
+
+
+class RailModel(IMM):
+    """The four-regime rail IMM (pure: states in, states out); see the module docstring."""
+
+    def __init__(self, parameters: RailModelParameters = RailModelParameters()):
+        """Build the regimes from ``parameters``."""
+        self.parameters = parameters
+        moving = _moving_model(parameters)
+        self._rates = RateTransition(parameters.rates())
+        super().__init__((_stand_model(parameters), moving, moving, moving), self._transition,
+                         MODE_NAMES, self.entry)
+
+    def _transition(self, dt_s: float, state: IMMState) -> np.ndarray:
+        """Return Π(dt): the fixed rates plus brake -> stand, scaled by P(v <= stop speed)."""
+        params = self.parameters
+        rates = self._rates.rates.copy()
+        v = state.means[BRAKE, 1]
+        std = math.sqrt(max(state.covariances[BRAKE, 1, 1], 0.0))
+        slow = (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
+            _normal_cdf((params.stop_speed_mps - v) / std)
+        rates[BRAKE, STAND] = params.stop_rate_hz * slow
+        return self._rates.matrix(dt_s, rates)
+
+    def entry(self, j: int, x: np.ndarray, P: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Return a component entering mode j with its new commanded acceleration ℓ.
+
+        accelerate: ℓ = A + w, brake: ℓ = -B + w, w ~ N(0, plateau_std²) independent;
+        as x' = T x + w this is exact: ℓ's row and column become A's (or -B's) and its
+        variance Var(A) + plateau_std². cruise: ℓ ~ N(0, cruise_std²), independent of
+        the rest; stand: ℓ = 0.
+        """
+        x, P = x.copy(), P.copy()
+        params = self.parameters
+        if j in (ACCELERATE, BRAKE):
+            source, sign = (4, 1.0) if j == ACCELERATE else (5, -1.0)
+            x[3] = sign * x[source]
+            P[3, :] = sign * P[source, :]
+            P[:, 3] = sign * P[:, source]
+            P[3, 3] = P[source, source] + params.plateau_std_mps2 ** 2
+        else:
+            x[3] = 0.0
+            P[3, :] = 0.0
+            P[:, 3] = 0.0
+            P[3, 3] = params.cruise_std_mps2 ** 2 if j == CRUISE else 0.0
+        return x, P
+
+    def first_estimate(self, position_m: float, variance_m2: float = None) -> IMMState:
+        """Return the state after a first position measurement: v, a, ℓ wide, regimes even."""
+        params = self.parameters
+        variance = params.noise_std_m ** 2 if variance_m2 is None else float(variance_m2)
+        x0 = [float(position_m), 0.0, 0.0, 0.0, params.accelerate_mps2, params.brake_mps2]
+        return self.initial_state(x0, params.initial_covariance(variance))
+
+    def predict_ahead(self, state: IMMState, dt_s: float, u=None
+                      ) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Return the combined (x, P) dt_s ahead; no regime goes backwards.
+
+        Each regime predicts from its own estimate (x_j, P_j) with its dynamics; the
+        mean of a moving regime is held where its path stops (:meth:`_no_reversal`);
+        x = Σ μ_j x_j⁺, P = Σ μ_j (P_j⁺ + (x_j⁺ - x)(x_j⁺ - x)ᵀ).
+        """
+        dt_s = as_duration('dt_s', dt_s)
+        means = np.empty_like(state.means)
+        covs = np.empty_like(state.covariances)
+        for j, mode in enumerate(self.modes):
+            means[j], covs[j] = mode.predict(state.means[j], state.covariances[j], dt_s, u)
+            if j != STAND:
+                means[j] = self._no_reversal(state.means[j], means[j], dt_s)
+        return combine(means, covs, state.probabilities)
+
+    def _horizon_phi(self, dt_s: float) -> Tuple[float, float, float]:
+        """Return (φ1, φ2, φ3) at x = dt_s/τ, remembered for the last dt_s."""
+        if getattr(self, '_phi_cache', (None,))[0] != dt_s:
+            values = _phi(np.array([dt_s / self.parameters.response_time_s]))
+            self._phi_cache = (dt_s, tuple(float(v[0]) for v in values))
+        return self._phi_cache[1]
+
+    def _no_reversal(self, start: np.ndarray, predicted: np.ndarray,
+                     dt_s: float) -> np.ndarray:
+        """
+        Return the predicted mean with the train held where its mean velocity reaches 0.
+
+        The mean path from ``start`` (velocity clipped at 0) is v(t) = v + τφ1 a + τφ2 ℓ.
+        If it reaches 0 within dt_s, the first root is bracketed on a 40-step grid,
+        then on a 40-step grid within that step (to dt_s/1600), and the train stands
+        from then on (v = a = 0) at the position it reached.
+        """
+        p, v, a, command = start[:4]
+        tau = self.parameters.response_time_s
+        if v >= 0.0:
+            # φ1, φ2 grow with t, so v(t) >= v + τ φ1(T/τ) min(a, 0) + τ φ2(T/τ) min(ℓ, 0):
+            # if that is positive the mean path never stops and the prediction stands.
+            phi1, phi2, _ = self._horizon_phi(dt_s)
+            if v + tau * (phi1 * min(a, 0.0) + phi2 * min(command, 0.0)) > 0.0:
+                return predicted
+        state = np.array([p, max(v, 0.0), a, command])
+        low, high = 0.0, dt_s
+        for _ in range(2):
+            grid = np.linspace(low, high, 41)
+            path = relaxation_transition(grid, tau).dot(state)       # (41, 4) mean path
+            below = np.nonzero(path[:, 1] <= 0.0)[0]
+            if below.size == 0:
+                if v >= 0.0:
+                    return predicted
+                held = predicted.copy()  # started below 0: follow the clipped path
+                held[:3] = path[-1, :3]
+                return held
+            high = grid[below[0]]
+            if below[0] == 0:
+                break  # standing with a <= 0 already: it stays where it is
+            low = grid[below[0] - 1]
+        stop = relaxation_transition(high, tau)[0].dot(state)
+        held = predicted.copy()
+        held[0], held[1], held[2] = max(stop[0], p), 0.0, 0.0
+        return held
+
+
+def make_rail_filter(position_m: float, parameters: RailModelParameters = None,
+                     variance_m2: float = None) -> IMMFilter:
+    """Return an :class:`~kf_train.filters.imm.IMMFilter` of the rail model at a first fix."""
+    model = RailModel(parameters or RailModelParameters())
+    state = model.first_estimate(position_m, variance_m2)
+    return IMMFilter(model, state.means[0], state.covariances[0], state.probabilities)
