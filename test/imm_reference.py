@@ -10,7 +10,7 @@ Only the class names differ (ReferenceIMM, ReferenceRailModel).
 """
 
 import math
-from typing import Callable, Optional, Sequence, Tuple
+from typing import Callable, Dict, Optional, Sequence, Tuple
 
 from kf_train.filters.imm import (
     check_transition_matrix, IMMState, make_state, RateTransition)
@@ -24,6 +24,7 @@ import numpy as np
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _H = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
+_CACHE_SIZE = 64
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:
@@ -185,12 +186,34 @@ class ReferenceIMM:
         return UpdateResult(y, S, nis, gain)
 
 
+class _Cached:
+    """dt -> matrix, remembering the last few dt values (a stream repeats its period)."""
+
+    def __init__(self, function):
+        """Wrap ``function(dt) -> read-only matrix``."""
+        self.function = function
+        self.values: Dict[float, np.ndarray] = {}
+
+    def __call__(self, dt_s: float) -> np.ndarray:
+        """Return function(dt_s), computed once per dt."""
+        value = self.values.get(dt_s)
+        if value is None:
+            value = self.function(as_duration('dt', dt_s))
+            value.flags.writeable = False
+            if len(self.values) >= _CACHE_SIZE:
+                self.values.pop(next(iter(self.values)))
+            self.values[dt_s] = value
+        return value
+
+
 def _stand_model(params: RailModelParameters) -> LinearModel:
-    """Return the stand regime (F, Q recomputed at every call: no cache)."""
+    """Return the stand regime: p held (plus stand_noise), v = a = ℓ = 0 exactly, A, B kept."""
+    F = np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0])
+    F.flags.writeable = False
     q = params.capability_noise
-    return LinearModel(lambda dt: np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0]),
-                       lambda dt: np.diag([params.stand_noise * dt, 0.0, 0.0, 0.0,
-                                           q * dt, q * dt]),
+    return LinearModel(lambda dt: F,
+                       _Cached(lambda dt: np.diag([params.stand_noise * dt, 0.0, 0.0, 0.0,
+                                                   q * dt, q * dt])),
                        _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
 
 
@@ -211,10 +234,10 @@ def _moving_noise(dt_s: float, params: RailModelParameters) -> np.ndarray:
 
 
 def _moving_model(params: RailModelParameters) -> LinearModel:
-    """Return a moving regime's Kalman model."""
+    """Return a moving regime's Kalman model (all three share the dynamics)."""
     tau = params.response_time_s
-    return LinearModel(lambda dt: _moving_transition(dt, tau),
-                       lambda dt: _moving_noise(dt, params),
+    return LinearModel(_Cached(lambda dt: _moving_transition(dt, tau)),
+                       _Cached(lambda dt: _moving_noise(dt, params)),
                        _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
 
 

@@ -254,12 +254,14 @@ class IMM:
         """Do :meth:`mix` for a checked Π."""
         mu = state.probabilities
         cbar = mu.dot(matrix)                                   # c̄_j = Σ_i Π_ij μ_i
-        with np.errstate(divide='ignore', invalid='ignore'):
-            weights = matrix * mu[:, None] / cbar               # ω_ij = Π_ij μ_i / c̄_j
-        if not cbar.all():  # an unreachable mode keeps its own estimate (probability 0)
+        if 0.0 in cbar.tolist():  # an unreachable mode keeps its own estimate (c̄_j = 0)
+            reachable = np.where(cbar > 0.0, cbar, 1.0)
+            weights = matrix * mu[:, None] / reachable
             for j in np.flatnonzero(cbar == 0.0):
                 weights[:, j] = 0.0
                 weights[j, j] = 1.0
+        else:
+            weights = matrix * mu[:, None] / cbar               # ω_ij = Π_ij μ_i / c̄_j
         means, covariances = self._entered(state.means, state.covariances, weights)
         mixed_x, mixed_P = imm_stack.mix(weights, means, covariances)   # x0_j, P0_j
         return cbar, mixed_x, mixed_P
@@ -292,16 +294,15 @@ class IMM:
     def _predict_modes(self, means: np.ndarray, covs: np.ndarray, dt_s: float, u=None):
         """Return each mode's own prediction of its (means[j], covs[j]) over dt_s."""
         if self._stack is not None and u is None:
-            F, Q = self._matrices(dt_s)
-            return imm_stack.predict(means, covs, F, Q)
+            return imm_stack.predict(means, covs, *self._matrices(dt_s))
         predicted_x = np.empty_like(means)
         predicted_P = np.empty_like(covs)
         for j, mode in enumerate(self.modes):
             predicted_x[j], predicted_P[j] = mode.predict(means[j], covs[j], dt_s, u)
         return predicted_x, predicted_P
 
-    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray]:
-        """Return the stacked, checked F(dt_s) and Q(dt_s) of the modes."""
+    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the stacked, checked F(dt_s), Q(dt_s) and F(dt_s)ᵀ of the modes."""
         return self._stack.matrices(dt_s)
 
     def predict_ahead(self, state: IMMState, dt_s: float, u=None
@@ -338,7 +339,7 @@ class IMM:
         z = _measurement(z)
         R = stack.R if R is None else np.full(self.mode_count, _variance(R))
         result = imm_stack.update(state.means, state.covariances, z, stack.H, R,
-                                  stack.identity)
+                                  stack.identity, stack.selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
         y, S, nis, gain = imm_stack.mixture_innovation(state.probabilities, state.means, result)
         new_state = IMMState(_read_only(result.means), _read_only(result.covariances),

@@ -24,6 +24,7 @@ import numpy as np
 _LOG_2PI = math.log(2.0 * math.pi)
 # How many dt values a LinearStack keeps stacked matrices for (a stream repeats a few).
 _KEPT = 64
+_ONES = {}
 
 
 class StackUpdate(NamedTuple):
@@ -52,14 +53,27 @@ def duration(dt_s) -> float:
 
 def check_finite(means: np.ndarray, covariances: np.ndarray, step: str) -> None:
     """Raise ValueError if a step overflowed into a non-finite state."""
-    # A NaN or ±inf makes the sum NaN or ±inf; a finite sum that overflows is re-checked.
-    if not math.isfinite(float(means.sum()) + float(covariances.sum())):
+    # A NaN or ±inf makes a sum NaN or ±inf (a dot with ones: the cheapest sum); a
+    # finite sum that overflows is re-checked entry by entry.
+    total = means.reshape(-1).dot(_ones(means.size)) + \
+        covariances.reshape(-1).dot(_ones(covariances.size))
+    if not math.isfinite(total):
         if not (np.isfinite(means).all() and np.isfinite(covariances).all()):
             raise ValueError(f'{step} produced a non-finite state; inputs are too large')
 
 
+def _ones(size: int) -> np.ndarray:
+    """Return a read-only vector of ``size`` ones, built once per size."""
+    ones = _ONES.get(size)
+    if ones is None:
+        ones = _ONES[size] = np.ones(size)
+        ones.flags.writeable = False
+    return ones
+
+
 def symmetrised(P: np.ndarray) -> np.ndarray:
     """Return (P + Pᵀ)/2 of each matrix of a stack (exactly symmetric)."""
+    # (Copying the transpose first is faster than adding the strided view.)
     return (P + P.swapaxes(-1, -2).copy()) * 0.5
 
 
@@ -69,7 +83,7 @@ def combine(means: np.ndarray, covariances: np.ndarray, probabilities: np.ndarra
     d = means - x
     n = means.shape[1]
     P = probabilities.dot(covariances.reshape(-1, n * n)).reshape(n, n) + \
-        (probabilities[:, None] * d).T.dot(d)                          # Σ μ_j (P_j + d dᵀ)
+        (probabilities[:, None] * d).T.dot(d)                        # Σ μ_j (P_j + d dᵀ)
     return x, (P + P.T) * 0.5
 
 
@@ -88,39 +102,50 @@ def mix(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray):
     if means.ndim == 2:
         x0 = columns.dot(means)                                      # x0_j = Σ_i ω_ij x_i
         spread = columns.dot(covariances.reshape(count, n * n))      # Σ_i ω_ij P_i
-        d = means[None, :, :] - x0[:, None, :]                       # d_ji = x_i - x0_j
+        d = means - x0[:, None, :]                                   # d_ji = x_i - x0_j
     else:
-        x0 = np.matmul(columns[:, None, :], means)[:, 0, :]
-        spread = np.matmul(columns[:, None, :],
-                           covariances.reshape(count, count, n * n))[:, 0, :]
+        rows = columns[:, None, :]
+        x0 = np.matmul(rows, means).reshape(count, n)
+        spread = np.matmul(rows, covariances.reshape(count, count, n * n))
         d = means - x0[:, None, :]
     P0 = spread.reshape(count, n, n) + np.matmul(
         (columns[:, :, None] * d).swapaxes(1, 2), d)                 # + Σ_i ω_ij d dᵀ
     return x0, symmetrised(P0)
 
 
-def predict(means: np.ndarray, covariances: np.ndarray, F: np.ndarray, Q: np.ndarray):
-    """Return each mode's prediction: x⁻ = F x, P⁻ = F P Fᵀ + Q (stacks F, Q (N, n, n))."""
-    x = np.matmul(F, means[:, :, None])[:, :, 0]                     # x⁻ = F x
-    P = np.matmul(np.matmul(F, covariances), F.swapaxes(1, 2)) + Q   # P⁻ = F P Fᵀ + Q
+def predict(means: np.ndarray, covariances: np.ndarray, F: np.ndarray, Q: np.ndarray,
+            F_transposed: np.ndarray):
+    """Return each mode's prediction: x⁻ = F x, P⁻ = F P Fᵀ + Q (stacks F, Q, Fᵀ (N, n, n))."""
+    x = np.matmul(F, means[:, :, None]).reshape(means.shape)        # x⁻ = F x
+    P = np.matmul(np.matmul(F, covariances), F_transposed) + Q       # P⁻ = F P Fᵀ + Q
     P = symmetrised(P)
     check_finite(x, P, 'prediction')
     return x, P
 
 
 def update(means: np.ndarray, covariances: np.ndarray, z: float, H: np.ndarray,
-           R: np.ndarray, identity: np.ndarray) -> StackUpdate:
+           R: np.ndarray, identity: np.ndarray, selected: Optional[int] = None
+           ) -> StackUpdate:
     """
     Return each mode corrected by the scalar z: H (N, 1, n), R (N,), Joseph form.
 
     S is 1x1, so K = P Hᵀ / s and NIS = y² / s in closed form, as kalman.update does.
+    ``selected``: the index k when every H is the unit row e_k; then H P, H x and
+    H P Hᵀ are P's row k, x_k and P_kk, which is what the products give exactly.
     """
-    HP = np.matmul(H, covariances)                                   # H P⁻ (N, 1, n)
-    y = z - np.matmul(H, means[:, :, None])[:, 0, 0]                 # y = z - H x⁻
-    s = np.matmul(HP, H.swapaxes(1, 2))[:, 0, 0] + R                 # s = H P⁻ Hᵀ + R
-    if not s.all():
-        raise ValueError(f'innovation covariance S = H P Hᵀ + R is singular: {s.tolist()}')
-    K = HP[:, 0, :] / s[:, None]                                     # K = P⁻ Hᵀ / s
+    count = means.shape[0]
+    if selected is None:
+        HP = np.matmul(H, covariances)                               # H P⁻ (N, 1, n)
+        y = z - np.matmul(H, means[:, :, None]).reshape(count)       # y = z - H x⁻
+        s = np.matmul(HP, H.swapaxes(1, 2)).reshape(count) + R       # s = H P⁻ Hᵀ + R
+    else:
+        HP = covariances[:, selected:selected + 1, :]
+        y = z - means[:, selected]
+        s = covariances[:, selected, selected] + R
+    s_list = s.tolist()
+    if 0.0 in s_list:
+        raise ValueError(f'innovation covariance S = H P Hᵀ + R is singular: {s_list}')
+    K = HP.reshape(means.shape) / s[:, None]                         # K = P⁻ Hᵀ / s
     x = means + K * y[:, None]                                       # x = x⁻ + K y
     I_KH = identity - K[:, :, None] * H                              # I - K H
     # Joseph form, P = (I - K H) P⁻ (I - K H)ᵀ + K R Kᵀ: stays symmetric and positive
@@ -129,19 +154,23 @@ def update(means: np.ndarray, covariances: np.ndarray, z: float, H: np.ndarray,
         (K * R[:, None])[:, :, None] * K[:, None, :]
     P = symmetrised(P)
     check_finite(x, P, 'update')
-    nis = y * y / s                                                  # NIS = y² / s
-    if not np.isfinite(nis).all():
-        raise ValueError(f'update produced an invalid NIS {nis.tolist()}; S = {s.tolist()}')
-    log_likelihoods = -0.5 * (nis + np.log(s) + _LOG_2PI)           # log N(y; 0, s)
-    return StackUpdate(x, P, y, s, K, log_likelihoods)
+    logs = []
+    for y_j, s_j in zip(y.tolist(), s_list):
+        nis = y_j * y_j / s_j                                        # NIS = y² / s
+        if not math.isfinite(nis) or nis < 0.0:
+            raise ValueError(f'update produced an invalid NIS {nis}; S = {s_list}')
+        logs.append(-0.5 * (nis + math.log(s_j) + _LOG_2PI))         # log N(y; 0, s)
+    return StackUpdate(x, P, y, s, K, logs)
 
 
-def posterior(prior: np.ndarray, log_likelihoods: np.ndarray) -> np.ndarray:
+def posterior(prior, log_likelihoods) -> np.ndarray:
     """Return μ_j ∝ c̄_j Λ_j, normalised in the log domain (no underflow to 0/0)."""
-    with np.errstate(divide='ignore'):
-        weights = np.log(prior) + log_likelihoods                    # log(c̄_j Λ_j)
-    weights = np.exp(weights - weights.max())
-    return weights / weights.sum()                                   # μ_j = c̄_j Λ_j / Σ
+    weights = [math.log(c) + log if c > 0.0 else -math.inf            # log(c̄_j Λ_j)
+               for c, log in zip(prior.tolist(), log_likelihoods)]
+    top = max(weights)
+    weights = [math.exp(w - top) for w in weights]
+    total = sum(weights)
+    return np.array([w / total for w in weights])                    # μ_j = c̄_j Λ_j / Σ
 
 
 def mixture_innovation(prior: np.ndarray, means: np.ndarray, result: StackUpdate):
@@ -151,14 +180,16 @@ def mixture_innovation(prior: np.ndarray, means: np.ndarray, result: StackUpdate
     ẑ = Σ c̄_j ẑ_j, S = Σ c̄_j (s_j + (ẑ_j - ẑ)²), P_xz = Σ c̄_j (K_j s_j + (x_j - x̄)(ẑ_j - ẑ))
     with ẑ_j - ẑ = -(y_j - y), K = P_xz / S, NIS = y² / S.
     """
-    c = prior
-    y = c.dot(result.innovations)                                    # y = z - Σ c̄_j ẑ_j
-    d = result.innovations - y
-    S = c.dot(result.variances) + c.dot(d * d)
-    x_bar = c.dot(means)
-    Pxz = c.dot(result.gains * result.variances[:, None] - (means - x_bar) * d[:, None])
+    c = prior.tolist()
+    y_modes, s_modes = result.innovations.tolist(), result.variances.tolist()
+    y = sum(cj * yj for cj, yj in zip(c, y_modes))                 # y = z - Σ c̄_j ẑ_j
+    d = [yj - y for yj in y_modes]
+    S = sum(cj * sj for cj, sj in zip(c, s_modes)) + sum(cj * dj * dj for cj, dj in zip(c, d))
+    x_bar = prior.dot(means)
+    Pxz = prior.dot(result.gains * result.variances[:, None] -
+                    (means - x_bar) * np.array(d)[:, None])
     nis = y * (y / S)                                                # yᵀ S⁻¹ y
-    return y, S, float(nis), Pxz / S
+    return y, S, nis, Pxz / S
 
 
 def frozen(array) -> bool:
@@ -184,6 +215,10 @@ class LinearStack:
         self.H = np.array([mode.H for mode in self.modes])          # (N, 1, n)
         self.R = np.array([mode.R[0, 0] for mode in self.modes])     # (N,)
         self.identity = np.eye(n)
+        # The index k when every H is the unit row e_k (a position measured directly).
+        unit = np.flatnonzero(self.H[0, 0] == 1.0)
+        self.selected = int(unit[0]) if unit.size == 1 and np.all(self.H == self.H[0]) and \
+            np.count_nonzero(self.H[0, 0]) == 1 else None
         for array in (self.H, self.R, self.identity):
             array.flags.writeable = False
         self._kept = {}
@@ -199,17 +234,20 @@ class LinearStack:
                 return None
         return cls(modes)
 
-    def matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray]:
-        """Return the checked, stacked (F(dt_s), Q(dt_s)), each (N, n, n)."""
+    def matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the checked, stacked (F(dt_s), Q(dt_s), F(dt_s)ᵀ), each (N, n, n)."""
         sources = [mode.F(dt_s) for mode in self.modes] + [mode.Q(dt_s) for mode in self.modes]
         kept = self._kept.get(dt_s)
-        if kept is not None and all(a is b for a, b in zip(kept[2], sources)):
-            return kept[0], kept[1]
+        if kept is not None and all(a is b for a, b in zip(kept[3], sources)):
+            return kept[:3]
         count, n = len(self.modes), self.dim_x
         F = np.array([as_matrix('F', value, n, n) for value in sources[:count]])
         Q = np.array([as_covariance('Q', value, n) for value in sources[count:]])
+        F_transposed = F.swapaxes(1, 2).copy()
         if all(frozen(value) for value in sources):
+            for array in (F, Q, F_transposed):
+                array.flags.writeable = False
             if len(self._kept) >= _KEPT:
                 self._kept.pop(next(iter(self._kept)))
-            self._kept[dt_s] = (F, Q, sources)
-        return F, Q
+            self._kept[dt_s] = (F, Q, F_transposed, sources)
+        return F, Q, F_transposed

@@ -281,7 +281,8 @@ class RailModel(IMM):
         super().__init__((_stand_model(parameters), moving, moving, moving), self._transition,
                          MODE_NAMES, self.entry)
         self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
-        self._entry_rows, self._entry_noise = _entry_transformation(parameters)
+        self._entry = _entry_transformation(parameters)
+        self._own = np.arange(len(MODE_NAMES))
         self._per_dt: Dict[float, tuple] = {}
 
     def _slow(self, state: IMMState) -> float:
@@ -299,21 +300,19 @@ class RailModel(IMM):
         return self._rates.matrix(dt_s, rates)
 
     def _for_dt(self, dt_s: float) -> tuple:
-        """Return (F, Q, Π without brake -> stand) for dt_s, computed once per dt_s."""
+        """Return (F, Q, Fᵀ, Π without brake -> stand) for dt_s, computed once per dt_s."""
         kept = self._per_dt.get(dt_s)
         if kept is None:
-            F, Q = self._stack.matrices(dt_s)
             matrix = self._rates.matrix(dt_s)
-            for array in (F, Q, matrix):
-                array.flags.writeable = False
+            matrix.flags.writeable = False
             if len(self._per_dt) >= _CACHE_SIZE:
                 self._per_dt.pop(next(iter(self._per_dt)))
-            kept = self._per_dt[dt_s] = (F, Q, matrix)
+            kept = self._per_dt[dt_s] = self._stack.matrices(dt_s) + (matrix,)
         return kept
 
-    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray]:
-        """Return the regimes' stacked F(dt_s) and Q(dt_s)."""
-        return self._for_dt(dt_s)[:2]
+    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the regimes' stacked F(dt_s), Q(dt_s) and F(dt_s)ᵀ."""
+        return self._for_dt(dt_s)[:3]
 
     def _transition_matrix(self, dt_s: float, state: IMMState) -> np.ndarray:
         """
@@ -328,7 +327,7 @@ class RailModel(IMM):
         # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
         row = [(1.0 - stay) * (r / leave) if leave > 0.0 else 0.0 for r in rates]
         row[BRAKE] = stay
-        matrix = self._for_dt(dt_s)[2].copy()
+        matrix = self._for_dt(dt_s)[3].copy()
         matrix[BRAKE] = row
         return matrix
 
@@ -336,21 +335,14 @@ class RailModel(IMM):
         """
         Return every component as it enters every regime: [j, i] is i entering j.
 
-        :meth:`entry` for all pairs at once: ℓ's row and column of component i become
-        T_j's row ℓ times P_i (A's, -B's or 0), exactly (one nonzero term), and its
-        variance that plus the regime's own; component j itself is unchanged.
+        :meth:`entry` for all pairs at once, as x' = T_j x, P' = T_j P Tⱼᵀ + W_j: T_j is
+        the identity but for ℓ's row (A's, -B's or none), so every product has one
+        nonzero term and is exact, as entry's copies are; component j itself is kept.
         """
-        count = self.mode_count
-        xs = np.repeat(means[None], count, axis=0)             # (N, N, n)
-        Ps = np.repeat(covs[None], count, axis=0)              # (N, N, n, n)
-        rows = self._entry_rows                                # T_j's row ℓ (N, n)
-        ell_rows = np.matmul(rows[:, None, None, :], covs[None])[:, :, 0, :]   # T_j P_i
-        xs[:, :, 3] = rows.dot(means.T)                        # ℓ = T_j x_i
-        Ps[:, :, 3, :] = ell_rows
-        Ps[:, :, :, 3] = ell_rows
-        Ps[:, :, 3, 3] = (rows * rows).dot(np.diagonal(covs, axis1=1, axis2=2).T) + \
-            self._entry_noise[:, None]                          # Var(A or B) + w_j
-        own = np.arange(count)
+        T, T_transposed, W = self._entry
+        xs = np.matmul(T, means[:, :, None]).reshape(T.shape[0], *means.shape)   # T_j x_i
+        Ps = np.matmul(np.matmul(T, covs), T_transposed) + W   # T_j P_i Tⱼᵀ + W_j
+        own = self._own
         xs[own, own] = means
         Ps[own, own] = covs
         return xs, Ps
@@ -398,8 +390,7 @@ class RailModel(IMM):
         dt_s = imm_stack.duration(dt_s)
         if u is not None:
             raise ValueError('u given to a model without control input')
-        F, Q = self._matrices(dt_s)
-        means, covs = imm_stack.predict(state.means, state.covariances, F, Q)
+        means, covs = imm_stack.predict(state.means, state.covariances, *self._matrices(dt_s))
         for j in (ACCELERATE, CRUISE, BRAKE):
             held = self._stops.hold(state.means[j], means[j], dt_s)
             if held is not means[j]:
@@ -412,16 +403,25 @@ class RailModel(IMM):
         return self._stops.hold(start, predicted, dt_s)
 
 
-def _entry_transformation(params: RailModelParameters) -> Tuple[np.ndarray, np.ndarray]:
-    """Return each regime's row ℓ of its entry transformation T_j, and ℓ's added variance."""
-    rows = np.zeros((4, DIM_X))
-    rows[ACCELERATE, 4] = 1.0                                  # ℓ = A + w
-    rows[BRAKE, 5] = -1.0                                      # ℓ = -B + w
-    noise = np.array([0.0, params.plateau_std_mps2 ** 2, params.cruise_std_mps2 ** 2,
-                      params.plateau_std_mps2 ** 2])
-    for array in (rows, noise):
+def _entry_transformation(params: RailModelParameters):
+    """
+    Return (T, Tᵀ, W) of :meth:`RailModel.entry` for the four regimes, shaped (4, 1, n, n).
+
+    Entering regime j is x' = T_j x + w, w ~ N(0, W_j): T_j is the identity with ℓ's
+    row replaced by A's (accelerate), -B's (brake) or zeros (cruise, stand); W_j holds
+    ℓ's new variance (plateau_std², cruise_std² or 0).
+    """
+    T = np.tile(np.eye(DIM_X), (4, 1, 1))
+    T[:, 3, :] = 0.0
+    T[ACCELERATE, 3, 4] = 1.0                                  # ℓ = A + w
+    T[BRAKE, 3, 5] = -1.0                                      # ℓ = -B + w
+    W = np.zeros((4, DIM_X, DIM_X))
+    W[:, 3, 3] = [0.0, params.plateau_std_mps2 ** 2, params.cruise_std_mps2 ** 2,
+                  params.plateau_std_mps2 ** 2]
+    arrays = (T[:, None], T.swapaxes(1, 2).copy()[:, None], W[:, None])
+    for array in arrays:
         array.flags.writeable = False
-    return rows, noise
+    return arrays
 
 
 def make_rail_filter(position_m: float, parameters: RailModelParameters = None,
