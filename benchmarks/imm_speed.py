@@ -26,11 +26,15 @@ from kf_train.filters.rail_model import RailModel, STATE_NAMES
 from kf_train.sim.rail import rail_scenario
 import numpy as np
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                'test'))
-from imm_reference import ReferenceRailModel  # noqa: E402  (the test folder's oracle)
-
 HORIZON_S = 2.0
+TEST_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), 'test')
+
+
+def _reference_model():
+    """Return the original algorithm, kept in the test folder as the tests' oracle."""
+    sys.path.insert(0, TEST_DIR)
+    from imm_reference import ReferenceRailModel
+    return ReferenceRailModel()
 
 
 def _time_model(model, t, z, block: int):
@@ -81,11 +85,11 @@ def main(argv=None) -> int:
     """Time both implementations and print the table."""
     parser = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     parser.add_argument('--rows', type=int, default=3000, help='measurements per run')
-    parser.add_argument('--block', type=int, default=250, help='measurements per block')
+    parser.add_argument('--block', type=int, default=50, help='measurements per block')
     args = parser.parse_args(argv)
     scenario, _ = rail_scenario(11, 'metro')
     t, z = scenario.t_s[:args.rows], scenario.z[:args.rows, 0]
-    before, ahead_before = _time_model(ReferenceRailModel(), t, z, args.block)
+    before, ahead_before = _time_model(_reference_model(), t, z, args.block)
     now, ahead_now = _time_model(RailModel(), t, z, args.block)
     adapter = _time_adapter(RailModel(), t, z, args.block)
     print(f'rail IMM, {t.size} measurements of a metro run, dt = 0.1 s; µs per measurement, '
