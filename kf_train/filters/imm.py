@@ -289,7 +289,8 @@ class IMM:
         dt_s = imm_stack.duration(dt_s)
         cbar, mixed_x, mixed_P = self._mix(state, self._transition_matrix(dt_s, state))
         means, covs = self._predict_modes(mixed_x, mixed_P, dt_s, u)
-        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / cbar.sum()))
+        total = sum(cbar.tolist())
+        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / total))
 
     def _predict_modes(self, means: np.ndarray, covs: np.ndarray, dt_s: float, u=None):
         """Return each mode's own prediction of its (means[j], covs[j]) over dt_s."""
@@ -403,15 +404,22 @@ class IMMFilter:
         """Return the whole (immutable) state."""
         return self._state
 
+    def _estimate(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) of the state, computed once per state."""
+        kept = getattr(self, '_estimated', None)
+        if kept is None or kept[0] is not self._state:
+            kept = self._estimated = (self._state,) + tuple(self.imm.estimate(self._state))
+        return kept[1], kept[2]
+
     @property
     def mean(self) -> np.ndarray:
-        """Return the combined mean."""
-        return self.imm.estimate(self._state)[0]
+        """Return the combined mean (a new array)."""
+        return self._estimate()[0].copy()
 
     @property
     def covariance(self) -> np.ndarray:
-        """Return the combined covariance."""
-        return self.imm.estimate(self._state)[1]
+        """Return the combined covariance (a new array)."""
+        return self._estimate()[1].copy()
 
     x = mean
     P = covariance

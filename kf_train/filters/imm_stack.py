@@ -114,12 +114,18 @@ def mix(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray):
 
 
 def predict(means: np.ndarray, covariances: np.ndarray, F: np.ndarray, Q: np.ndarray,
-            F_transposed: np.ndarray):
-    """Return each mode's prediction: x⁻ = F x, P⁻ = F P Fᵀ + Q (stacks F, Q, Fᵀ (N, n, n))."""
+            F_transposed: np.ndarray, final: bool = True):
+    """
+    Return each mode's prediction: x⁻ = F x, P⁻ = F P Fᵀ + Q (stacks F, Q, Fᵀ (N, n, n)).
+
+    ``final=False`` leaves the symmetrising and the finiteness check to the caller (a
+    look-ahead that moment-matches the modes at once does both on the mixture).
+    """
     x = np.matmul(F, means[:, :, None]).reshape(means.shape)        # x⁻ = F x
     P = np.matmul(np.matmul(F, covariances), F_transposed) + Q       # P⁻ = F P Fᵀ + Q
-    P = symmetrised(P)
-    check_finite(x, P, 'prediction')
+    if final:
+        P = symmetrised(P)
+        check_finite(x, P, 'prediction')
     return x, P
 
 
@@ -182,9 +188,13 @@ def mixture_innovation(prior: np.ndarray, means: np.ndarray, result: StackUpdate
     """
     c = prior.tolist()
     y_modes, s_modes = result.innovations.tolist(), result.variances.tolist()
-    y = sum(cj * yj for cj, yj in zip(c, y_modes))                 # y = z - Σ c̄_j ẑ_j
-    d = [yj - y for yj in y_modes]
-    S = sum(cj * sj for cj, sj in zip(c, s_modes)) + sum(cj * dj * dj for cj, dj in zip(c, d))
+    y = 0.0
+    for c_j, y_j in zip(c, y_modes):
+        y += c_j * y_j                                               # y = z - Σ c̄_j ẑ_j
+    d = [y_j - y for y_j in y_modes]
+    S = 0.0
+    for c_j, s_j, d_j in zip(c, s_modes, d):
+        S += c_j * (s_j + d_j * d_j)                                 # Σ c̄_j (s_j + d_j²)
     x_bar = prior.dot(means)
     Pxz = prior.dot(result.gains * result.variances[:, None] -
                     (means - x_bar) * np.array(d)[:, None])

@@ -390,12 +390,16 @@ class RailModel(IMM):
         dt_s = imm_stack.duration(dt_s)
         if u is not None:
             raise ValueError('u given to a model without control input')
-        means, covs = imm_stack.predict(state.means, state.covariances, *self._matrices(dt_s))
+        means, covs = imm_stack.predict(state.means, state.covariances, *self._matrices(dt_s),
+                                        final=False)
+        starts = state.means[:, :4].tolist()
         for j in (ACCELERATE, CRUISE, BRAKE):
-            held = self._stops.hold(state.means[j], means[j], dt_s)
+            held = self._stops.hold(starts[j], means[j], dt_s)
             if held is not means[j]:
                 means[j] = held
-        return imm_stack.combine(means, covs, state.probabilities)
+        x, P = imm_stack.combine(means, covs, state.probabilities)
+        imm_stack.check_finite(x, P, 'prediction')
+        return x, P
 
     def _no_reversal(self, start: np.ndarray, predicted: np.ndarray,
                      dt_s: float) -> np.ndarray:

@@ -62,17 +62,18 @@ class StopFinder:
             self._bounds[horizon_s] = bound
         return bound
 
-    def hold(self, start: np.ndarray, predicted: np.ndarray, horizon_s: float) -> np.ndarray:
+    def hold(self, start, predicted: np.ndarray, horizon_s: float) -> np.ndarray:
         """
         Return the predicted mean with the train held where its mean velocity reaches 0.
 
         The mean path from ``start`` (velocity clipped at 0) is v(t) = v + τφ1 a + τφ2 ℓ.
         If it reaches 0 within horizon_s, the first root is bracketed on a 40-step grid,
         then on a 40-step grid within that step (to horizon_s/1600), and the train
-        stands from then on (v = a = 0) at the position it reached. ``predicted`` itself
-        is returned when the path never stops.
+        stands from then on (v = a = 0) at the position it reached. ``start`` is the
+        regime's current mean (an array, or its first four entries as a list of floats);
+        ``predicted`` itself is returned when the path never stops.
         """
-        p, v, a, command = start[:4].tolist()
+        p, v, a, command = start[:4] if type(start) is list else start[:4].tolist()
         if v >= 0.0:
             # φ1, φ2 grow with t, so v(t) >= v + τ φ1(T/τ) min(a, 0) + τ φ2(T/τ) min(ℓ, 0):
             # if that is positive the mean path never stops and the prediction stands.
