@@ -262,9 +262,12 @@ class IMM:
                 weights[j, j] = 1.0
         else:
             weights = matrix * mu[:, None] / cbar               # ω_ij = Π_ij μ_i / c̄_j
-        means, covariances = self._entered(state.means, state.covariances, weights)
-        mixed_x, mixed_P = imm_stack.mix(weights, means, covariances)   # x0_j, P0_j
+        mixed_x, mixed_P = self._mixed(weights, state.means, state.covariances)
         return cbar, mixed_x, mixed_P
+
+    def _mixed(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
+        """Return every mode's starting mixture (x0_j, P0_j) for mixing weights ω_ij."""
+        return imm_stack.mix(weights, *self._entered(means, covs, weights))
 
     def _entered(self, means: np.ndarray, covs: np.ndarray, weights: np.ndarray):
         """

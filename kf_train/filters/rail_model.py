@@ -282,7 +282,6 @@ class RailModel(IMM):
                          MODE_NAMES, self.entry)
         self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
         self._entry = _entry_transformation(parameters)
-        self._own = np.arange(len(MODE_NAMES))
         self._per_dt: Dict[float, tuple] = {}
 
     def _slow(self, state: IMMState) -> float:
@@ -331,21 +330,37 @@ class RailModel(IMM):
         matrix[BRAKE] = row
         return matrix
 
-    def _entered(self, means: np.ndarray, covs: np.ndarray, weights: np.ndarray):
+    def _mixed(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
         """
-        Return every component as it enters every regime: [j, i] is i entering j.
+        Return every regime's starting mixture, components entering it by :meth:`entry`.
 
-        :meth:`entry` for all pairs at once, as x' = T_j x, P' = T_j P Tⱼᵀ + W_j: T_j is
-        the identity but for ℓ's row (A's, -B's or none), so every product has one
-        nonzero term and is exact, as entry's copies are; component j itself is kept.
+        x0_j = Σ_i ω_ij x_ji, P0_j = Σ_i ω_ij (P_ji + d dᵀ), d = x_ji - x0_j, where
+        (x_ji, P_ji) is component i as it enters regime j: x' = T_j x, P' = T_j P Tⱼᵀ + W_j
+        for i ≠ j, itself for i = j. T_j is the identity but for ℓ's row (A's, -B's or
+        none), so x_ji and P_ji differ from x_i, P_i only in ℓ's entry, row and column,
+        which are products with one nonzero term (exact, as entry's copies are): only
+        those are formed, not N² covariances.
         """
-        T, T_transposed, W = self._entry
-        xs = np.matmul(T, means[:, :, None]).reshape(T.shape[0], *means.shape)   # T_j x_i
-        Ps = np.matmul(np.matmul(T, covs), T_transposed) + W   # T_j P_i Tⱼᵀ + W_j
-        own = self._own
-        xs[own, own] = means
-        Ps[own, own] = covs
-        return xs, Ps
+        count, n = means.shape
+        rows, squares, noise = self._entry
+        columns = weights.T                                    # [j, i] = ω_ij
+        diagonal = slice(None, None, count + 1)               # the pairs j = i of [j, i]
+        xs = np.empty((count, count, n))
+        xs[:] = means
+        xs[:, :, 3] = rows.dot(means.T)                        # ℓ_ji = T_j's row ℓ · x_i
+        xs.reshape(count * count, n)[diagonal, 3] = means[:, 3]
+        x0 = np.matmul(columns[:, None, :], xs).reshape(count, n)          # Σ_i ω_ij x_ji
+        flat = covs.reshape(count, n * n)
+        ell = np.dot(rows, covs)                               # row ℓ of T_j P_i (N, N, n)
+        ell[:, :, 3] = squares.dot(flat[:, ::n + 1].T) + noise  # Var(A or B) + w_j
+        ell.reshape(count * count, n)[diagonal] = covs[:, 3, :]
+        spread = columns.dot(flat).reshape(count, n, n)        # Σ_i ω_ij P_i
+        row = np.matmul(columns[:, None, :], ell).reshape(count, n)       # … its row ℓ
+        spread[:, 3, :] = row
+        spread[:, :, 3] = row
+        d = xs - x0[:, None, :]                                # d_ji = x_ji - x0_j
+        P0 = spread + np.matmul((columns[:, :, None] * d).swapaxes(1, 2), d)
+        return x0, imm_stack.symmetrised(P0)
 
     def entry(self, j: int, x: np.ndarray, P: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """
@@ -409,20 +424,18 @@ class RailModel(IMM):
 
 def _entry_transformation(params: RailModelParameters):
     """
-    Return (T, Tᵀ, W) of :meth:`RailModel.entry` for the four regimes, shaped (4, 1, n, n).
+    Return (rows, rows², W (4, 1)) of :meth:`RailModel.entry` for the four regimes.
 
     Entering regime j is x' = T_j x + w, w ~ N(0, W_j): T_j is the identity with ℓ's
-    row replaced by A's (accelerate), -B's (brake) or zeros (cruise, stand); W_j holds
-    ℓ's new variance (plateau_std², cruise_std² or 0).
+    row replaced by ``rows[j]``, A's (accelerate), -B's (brake) or zeros (cruise,
+    stand); W_j = ``noise[j]`` is ℓ's new variance (plateau_std², cruise_std² or 0).
     """
-    T = np.tile(np.eye(DIM_X), (4, 1, 1))
-    T[:, 3, :] = 0.0
-    T[ACCELERATE, 3, 4] = 1.0                                  # ℓ = A + w
-    T[BRAKE, 3, 5] = -1.0                                      # ℓ = -B + w
-    W = np.zeros((4, DIM_X, DIM_X))
-    W[:, 3, 3] = [0.0, params.plateau_std_mps2 ** 2, params.cruise_std_mps2 ** 2,
-                  params.plateau_std_mps2 ** 2]
-    arrays = (T[:, None], T.swapaxes(1, 2).copy()[:, None], W[:, None])
+    rows = np.zeros((4, DIM_X))
+    rows[ACCELERATE, 4] = 1.0                                  # ℓ = A + w
+    rows[BRAKE, 5] = -1.0                                      # ℓ = -B + w
+    noise = np.array([[0.0], [params.plateau_std_mps2 ** 2], [params.cruise_std_mps2 ** 2],
+                      [params.plateau_std_mps2 ** 2]])
+    arrays = (rows, rows * rows, noise)
     for array in arrays:
         array.flags.writeable = False
     return arrays
