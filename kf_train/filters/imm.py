@@ -416,12 +416,12 @@ class IMMFilter:
 
     @property
     def mean(self) -> np.ndarray:
-        """Return the combined mean (a new array)."""
+        """Return the combined mean, a new array."""
         return self._estimate()[0].copy()
 
     @property
     def covariance(self) -> np.ndarray:
-        """Return the combined covariance (a new array)."""
+        """Return the combined covariance, a new array."""
         return self._estimate()[1].copy()
 
     x = mean
