@@ -341,7 +341,7 @@ class IMM:
         """Do :meth:`update` on the stack: every mode a LinearModel measuring a scalar."""
         stack = self._stack
         z = _measurement(z)
-        R = stack.R if R is None else np.full(self.mode_count, _variance(R))
+        R = stack.R if R is None else stack.noise(_variance(R))
         result = imm_stack.update(state.means, state.covariances, z, stack.H, R,
                                   stack.identity, stack.selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)

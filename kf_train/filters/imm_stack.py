@@ -232,6 +232,16 @@ class LinearStack:
         for array in (self.H, self.R, self.identity):
             array.flags.writeable = False
         self._kept = {}
+        self._noise = (None, None)
+
+    def noise(self, variance: float) -> np.ndarray:
+        """Return R = ``variance`` for every mode, (N,), kept for the last value asked."""
+        kept = self._noise
+        if kept[0] != variance:
+            vector = np.full(len(self.modes), variance)
+            vector.flags.writeable = False
+            kept = self._noise = (variance, vector)
+        return kept[1]
 
     @classmethod
     def of(cls, modes) -> Optional['LinearStack']:
