@@ -23,6 +23,10 @@ from kf_train.filters import PARTICLE_KINDS
 import numpy as np
 
 
+class GapsFound(Exception):
+    """Rows without a measurement reached an engine made without ``gaps``: start again."""
+
+
 class StreamingReplay:
     """Filter rows pushed in pieces; return the estimates block by block."""
 
@@ -63,7 +67,7 @@ class StreamingReplay:
     def push(self, rows: Rows) -> List[OutputBlock]:
         """Take more rows; return the output of every block they complete."""
         if rows.missing is not None and not self.gaps and rows.missing.any():
-            raise ValueError('rows without a measurement need StreamingReplay(gaps=True)')
+            raise GapsFound('rows without a measurement need StreamingReplay(gaps=True)')
         if rows.t.shape[0]:
             self.pending.append(rows)
             self.pending_rows += rows.t.shape[0]

@@ -4,7 +4,8 @@ How ``kf-train replay`` runs: streamed in bounded memory, all in memory, or on D
 * ``--engine stream`` (default): :func:`kf_train.cli.replay_stream.stream_replay`,
   blocks of ``--block-rows`` rows, any input size, CSV or Parquet.
 * ``--engine memory``: the whole table in memory (:func:`kf_train.cli.replay.replay`),
-  CSV only; equal to ``stream`` when the input has at most ``--block-rows`` rows.
+  CSV only; filtered in the same blocks of ``--block-rows``, so it writes the bytes
+  of ``stream`` for any input size.
 * ``--engine dask``: a fleet with an ``id`` column on a Dask cluster
   (:func:`kf_train.cli.fleet_dask.dask_replay`): ``--workers N`` local processes, or
   ``--scheduler ADDRESS`` to join a running cluster.
@@ -61,7 +62,8 @@ def run_engine(args, preset, filt):
     common = {'horizon_s': args.horizon, 'smooth': args.smooth, 't0_s': args.t0, 'filt': filt}
     if args.engine == 'memory':
         from kf_train.cli.replay import replay
-        return replay(preset, args.input, args.output, **common)
+        return replay(preset, args.input, args.output, block_rows=args.block_rows,
+                      spill_dir=args.spill_dir, **common)
     if args.engine == 'dask':
         from kf_train.cli.fleet_dask import dask_replay
         return dask_replay(preset, args.input, args.output, workers=args.workers,

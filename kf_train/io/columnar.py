@@ -39,6 +39,8 @@ class Piece(NamedTuple):
     columns: Dict[str, np.ndarray]
     codes: Optional[np.ndarray]
     labels: Optional[List[str]]
+    missing: Optional[np.ndarray] = None
+    """Rows with an empty (null) cell in a column that may have gaps (NaN there), or None."""
 
 
 def available() -> bool:
@@ -65,37 +67,47 @@ def _codes(ids) -> tuple:
 
 
 def _piece(frame, wanted: Sequence[str], id_column: Optional[str],
-           bad: Callable[[str, int], Exception]) -> Piece:
-    """Return a batch as a Piece; ``bad(column, row)`` builds the error for a bad cell."""
+           bad: Callable[[str, int], Exception], gaps: Sequence[str] = ()) -> Piece:
+    """
+    Return a batch as a Piece; ``bad(column, row)`` builds the error for a bad cell.
+
+    An empty (null) cell of a column in ``gaps`` is NaN and flags its row missing; a NaN
+    or infinite value is bad anywhere.
+    """
     pl = _pl()
     columns = {}
+    missing = None
     for name in wanted:
         series = frame.get_column(name)
-        if series.null_count():
-            raise bad(name, int(series.is_null().arg_max()))
+        nulls = series.is_null().to_numpy() if series.null_count() else None
+        if nulls is not None and name not in gaps:
+            raise bad(name, int(np.argmax(nulls)))
         values = series.cast(pl.Float64).to_numpy()
         finite = np.isfinite(values)
+        if nulls is not None:
+            missing = nulls if missing is None else missing | nulls
+            finite |= nulls
         if not finite.all():
             raise bad(name, int(np.argmin(finite)))
         columns[name] = values
     if id_column is None:
-        return Piece(columns, None, None)
+        return Piece(columns, None, None, missing)
     ids = frame.get_column(id_column).cast(pl.String).str.strip_chars()
     empty = ids.is_null() | (ids.str.len_bytes() == 0)
     if empty.any():
         raise bad(id_column, int(empty.arg_max()))
     codes, labels = _codes(ids)
-    return Piece(columns, codes, labels)
+    return Piece(columns, codes, labels, missing)
 
 
 def read_csv_pieces(blocks: Iterable[bytes], header: Sequence[str], wanted: Sequence[str],
-                    id_column: Optional[str]) -> Iterator[Piece]:
+                    id_column: Optional[str], gaps: Sequence[str] = ()) -> Iterator[Piece]:
     """
     Yield the rows of CSV text given in blocks of whole lines (no header); raise NotPlain.
 
     ``header`` names the columns (the caller read line 1). Each block is parsed on its
     own, so memory holds one block (polars' own streaming reader reads ahead without
-    bound on a slow consumer).
+    bound on a slow consumer). Empty cells of the columns in ``gaps`` flag missing rows.
     """
     pl = _pl()
     keep = [i for i, name in enumerate(header) if name in set(wanted) | {id_column}]
@@ -103,7 +115,7 @@ def read_csv_pieces(blocks: Iterable[bytes], header: Sequence[str], wanted: Sequ
     try:
         for block in blocks:
             frame = pl.read_csv(block, has_header=False, schema=schema, columns=keep)
-            yield _piece(frame, wanted, id_column, lambda column, row: NotPlain(column))
+            yield _piece(frame, wanted, id_column, lambda column, row: NotPlain(column), gaps)
     except (pl.exceptions.PolarsError, OSError, ValueError) as error:
         raise NotPlain(str(error)) from None
 
@@ -135,15 +147,15 @@ def parquet_columns(path: str) -> List[str]:
 
 
 def read_parquet_pieces(path: str, wanted: Sequence[str], id_column: Optional[str],
-                        chunk_rows: int) -> Iterator[Piece]:
-    """Yield the Parquet file's (or dataset's) rows in pieces; raise ParquetError."""
+                        chunk_rows: int, gaps: Sequence[str] = ()) -> Iterator[Piece]:
+    """Yield the Parquet file's (or dataset's) rows in pieces (nulls in ``gaps``: missing)."""
     pl = _pl()
     keep = list(wanted) + ([id_column] if id_column else [])
     done = 0
 
     def bad(column: str, row: int) -> ParquetError:
-        return ParquetError(f"column '{column}': empty or non-finite value", done + row,
-                            column)
+        what = 'non-finite value' if column in gaps else 'empty or non-finite value'
+        return ParquetError(f"column '{column}': {what}", done + row, column)
 
     try:
         # Slice by slice: polars' collect_batches reads ahead without bound when the
@@ -153,7 +165,7 @@ def read_parquet_pieces(path: str, wanted: Sequence[str], id_column: Optional[st
             frame = scan.slice(done, chunk_rows).collect()
             if not frame.height:
                 break
-            yield _piece(frame, wanted, id_column, bad)
+            yield _piece(frame, wanted, id_column, bad, gaps)
             done += frame.height
     except (pl.exceptions.PolarsError, OSError) as error:
         raise ParquetError(f'cannot read Parquet: {" ".join(str(error).split())[:300]}'
