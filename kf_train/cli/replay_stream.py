@@ -31,6 +31,7 @@ from typing import Dict, Iterator, List, Optional
 
 from kf_train.batch import DEFAULT_BLOCK_ROWS, GapsFound, RowError, Rows, StreamingReplay
 from kf_train.cli import replay as inmemory
+from kf_train.cli.progress import Progress
 from kf_train.io import columnar
 import numpy as np
 
@@ -324,15 +325,17 @@ def prefetch(items: Iterator, depth: int = 2) -> Iterator:
 
 
 def _blocks(source: Source, engine: StreamingReplay) -> Iterator[tuple]:
-    """Yield the output blocks (columns, codes) of a whole input."""
+    """Yield the output blocks (columns, codes) of a whole input (a bar after 2 s)."""
     pieces = source.pieces()
     if not isinstance(source, CsvSource):            # polars readers: read ahead
         pieces = prefetch(pieces)
-    for rows in pieces:
-        for block in engine.push(rows):
+    with Progress(None, 'rows', 'replay') as progress:
+        for rows in pieces:
+            for block in engine.push(rows):
+                yield block.columns, block.codes
+            progress.advance(rows.t.shape[0])
+        for block in engine.finish():
             yield block.columns, block.codes
-    for block in engine.finish():
-        yield block.columns, block.codes
 
 
 def _run_once(source: Source, output_path: str, fast_output: bool, options: dict):
