@@ -63,7 +63,7 @@ import warnings
 from kf_train.batch import (
     bank_time_steps, DEFAULT_BLOCK_ROWS, filter_table, group_rows, Groups, MAX_ABS_TIME_S,
     output_header, resolve_horizon, RowError, rts_smooth, run_bank, run_filter_series,
-    run_linear_series, run_series, SeriesError, SeriesResult, SmootherResult, TimeOrderError)
+    run_linear_series, run_series, SeriesResult, SmootherResult, TimeOrderError)
 from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
 from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S, PARTICLE_KINDS
