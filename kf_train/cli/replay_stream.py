@@ -16,6 +16,12 @@ Two CSV paths give the same bytes:
 
 Parquet needs the extra. Output goes to a temporary file (or directory) beside OUTPUT
 that replaces it only when complete, so bad input leaves no partial output.
+
+Gaps (an empty measurement cell, a null in Parquet) are found while reading: the first
+one makes the replay start again from the top with the ``updated`` column
+(:class:`kf_train.batch.GapsFound`), so a complete input pays nothing and keeps its
+bytes. Standard input is copied to a temporary file first, so it can be read again;
+standard output is written when the output is complete.
 """
 
 import io
