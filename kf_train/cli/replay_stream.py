@@ -84,6 +84,7 @@ class Source:
         self.id_column: Optional[str] = None
         self.labels = Labels()
         self.rows = 0
+        self.total: Optional[int] = None   # rows in the input, when known (the bar's end)
         self.index: List[tuple] = []   # per piece: (first row, rows, first line, lines)
 
     @property
@@ -255,6 +256,7 @@ class ParquetSource(Source):
             raise inmemory.InputError(str(error).replace(
                 f'{self.path} line {inmemory.HEADER_LINE}:', f'{self.path}:', 1)) from None
         self.id_column = ID_COLUMN if ID_COLUMN in header else None
+        self.total = columnar.parquet_rows(self.path)
 
     def pieces(self) -> Iterator[Rows]:
         """Yield the rows in pieces of a block."""
@@ -335,7 +337,7 @@ def _blocks(source: Source, engine: StreamingReplay) -> Iterator[tuple]:
     pieces = source.pieces()
     if not isinstance(source, CsvSource):            # polars readers: read ahead
         pieces = prefetch(pieces)
-    with Progress(None, 'rows', 'replay') as progress:
+    with Progress(source.total, 'rows', 'replay') as progress:
         for rows in pieces:
             for block in engine.push(rows):
                 yield block.columns, block.codes

@@ -149,6 +149,15 @@ def parquet_columns(path: str) -> List[str]:
                            ) from None
 
 
+def parquet_rows(path: str) -> Optional[int]:
+    """Return the number of rows of a Parquet file or dataset (from its metadata), or None."""
+    pl = _pl()
+    try:
+        return int(pl.scan_parquet(parquet_source(path)).select(pl.len()).collect().item())
+    except (pl.exceptions.PolarsError, OSError, ValueError):
+        return None      # the reader reports what is wrong
+
+
 def read_parquet_pieces(path: str, wanted: Sequence[str], id_column: Optional[str],
                         chunk_rows: int, gaps: Sequence[str] = ()) -> Iterator[Piece]:
     """Yield the Parquet file's (or dataset's) rows in pieces (nulls in ``gaps``: missing)."""
