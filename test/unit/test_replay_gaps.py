@@ -211,3 +211,13 @@ def test_progress_bar_draws_only_when_asked():
     items = list(range(3 * progress.EVERY + 5))
     assert list(progress.counted(iter(items), len(items), 'msg', force=False)) == items
     assert list(progress.counted(iter(items), len(items), 'msg', force=True)) == items
+
+
+def test_dask_partitions_refuse_gaps_by_name():
+    """The Dask partition function names the id and time of a row without measurement."""
+    pd = pytest.importorskip('pandas')
+    from kf_train.batch.partition import filter_partition
+    frame = pd.DataFrame({'id': ['a', 'a', 'a'], 't': [0.1, 0.2, 0.3],
+                          'z_position': [1.0, np.nan, 3.0]})
+    with pytest.raises(ValueError, match=r"id 'a', t = 0.2: empty or non-finite measurement"):
+        filter_partition(frame, 'train')
