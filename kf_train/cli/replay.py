@@ -47,10 +47,10 @@ updated, and the output ends with a column ``updated`` (1.0 or 0.0) when the inp
 such rows (a complete input's output is unchanged); 'nan' is refused, not missing.
 
 Bad input (a missing column, a non-numeric or non-finite cell, an empty t, u or id,
-a row with the wrong number of fields, a non-increasing ``t`` (per id), an empty id) is reported with the
-file, line and column,
-the exit code is 1, and no output file is written: output goes to a temporary file
-in the same directory that replaces OUTPUT only when complete.
+a row with the wrong number of fields, a non-increasing ``t`` (per id)) is reported
+with the file, line and column, the exit code is 1, and no output file is written:
+output goes to a temporary file in the same directory that replaces OUTPUT only when
+complete.
 """
 
 import argparse
