@@ -476,8 +476,8 @@ def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
 
     The table is read whole, then filtered in blocks of ``block_rows`` exactly as the
     streamed replay filters it (:func:`kf_train.batch.stream.filter_table`), so both
-    write the same bytes for any input size. ``fast`` False runs the row-by-row
-    reference (:func:`run_preset`) instead, on one block.
+    write the same bytes for any input size. ``fast`` False filters the whole table as
+    one block (a complete table only), whatever ``block_rows`` says.
     """
     if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
         raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
