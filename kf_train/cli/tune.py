@@ -334,7 +334,10 @@ def _setup(args):
     parameterisation = NoiseParameterisation(
         problem, process_noise=estimate_q, measurement_noise=fixed_r is None,
         initial_state=args.initial_state, fixed=fixed)
-    return spec, preset, problem, parameterisation, NoiseSetting(0.0, carried), notes
+    # Before: what the node runs untuned, the messages' variance where constant.
+    before = NoiseSetting(0.0, carried if not args.estimate_r else
+                          carried_variances(data, False)[0])
+    return spec, preset, problem, parameterisation, before, notes
 
 
 def main(argv: Optional[List[str]] = None) -> int:

@@ -14,10 +14,12 @@ from kf_train.cli import main as kf_train_main
 from kf_train.cli.bag_replay import load_config
 from kf_train.cli.tune import main as tune_main
 from kf_train.io.bagio_simulation import SimulationBag
+from kf_train.io.bagio_types import TYPESTORE
 from kf_train.ros import estimator_params, param_spec
 from kf_train.sim import white_noise_acceleration_scenario
 import numpy as np
 import pytest
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 import yaml
 
 NS = 1_000_000_000
@@ -203,3 +205,21 @@ def test_parquet_tunes_as_the_csv(tmp_path, capsys):
     frame.write_parquet(tmp_path / 'bad.parquet')
     code, out, err = tune(capsys, tmp_path / 'bad.parquet', '-o', tmp_path / 'c.yaml')
     assert code == 1 and "bad.parquet row 5, column 'z_position'" in err, err
+
+
+def test_a_sqlite3_bag_directory_tunes_as_the_mcap(tmp_path, capsys):
+    """The same messages in a sqlite3 rosbag2 directory: the same estimates."""
+    mcap, sqlite = tmp_path / 'run.mcap', tmp_path / 'run_db3'
+    assert simulate('--duration', 20, '--seed', 4, '--output', mcap) == 0
+    with Reader(mcap) as reader, Writer(sqlite, version=9,
+                                        storage_plugin=StoragePlugin.SQLITE3) as writer:
+        connections = {c.id: writer.add_connection(c.topic, c.msgtype, typestore=TYPESTORE)
+                       for c in reader.connections}
+        for connection, record_ns, raw in reader.messages():
+            writer.write(connections[connection.id], record_ns, raw)
+    assert list(sqlite.glob('*.db3'))
+    code, sqlite_text, err = tune(capsys, sqlite, '-o', tmp_path / 'a.yaml')
+    assert code == 0, err
+    code, mcap_text, err = tune(capsys, mcap, '-o', tmp_path / 'b.yaml')
+    same_report(sqlite_text, mcap_text)
+    assert 'bag run_db3: 200 measurements on /measurement' in sqlite_text
