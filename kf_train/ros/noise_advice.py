@@ -28,7 +28,7 @@ takes the newest control received (the node's for the interval, once it has arri
 """
 
 import collections
-from typing import Optional, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 from kf_train.batch import NoiseSuggestion, RunningNoiseEstimate
 
@@ -84,7 +84,7 @@ class NoiseAdvisor:
             self._control = tuple(float(v) for v in u)
 
     def add(self, stamp_ns: int, z: Sequence[float], variances: Sequence[float]) -> None:
-        """Take one fused measurement (values and the variances the node used)."""
+        """Take one fused measurement: its values and the variances its message carries."""
         estimate = self._estimate
         if estimate is None:
             return
@@ -114,13 +114,19 @@ class NoiseAdvisor:
         self._since = 0
         self._suggestion = None
 
-    def suggestion(self) -> Optional[NoiseSuggestion]:
-        """Return the window's suggested q, recomputed when due; None before it means much."""
+    def suggestion(self, node_variances: Callable[[Tuple[float, ...]], Sequence[float]]
+                   = tuple) -> Optional[NoiseSuggestion]:
+        """
+        Return the window's suggested q, recomputed when due; None before it means much.
+
+        ``node_variances`` maps the newest message's variances to the R the node uses
+        (its ``measurement_variance`` overrides).
+        """
         estimate = self._estimate
         if estimate is None or len(estimate) < estimate.min_samples:
             return None
         if self._suggestion is None or self._since >= self.refresh_every:
-            self._suggestion = estimate.suggest(self._variances)
+            self._suggestion = estimate.suggest(node_variances(self._variances))
             self._since = 0
             self.span_s = (self._stamps_ns[-1] - self._stamps_ns[0]) / 1e9
         return self._suggestion

@@ -105,7 +105,8 @@ class EstimatorSession:
             self.nis = collections.deque(self.nis, maxlen=self.config.options.nis_window)
         if NOISE_AND_GATE & changes.keys():
             self.nis.clear()  # the old NIS values judged the old tuning
-            self.noise.invalidate()   # R may have changed
+        if {'measurement_variance', 'measurement_velocity_variance'} & changes.keys():
+            self.noise.invalidate()   # the suggestion is for the R the node uses
         if {'noise_suggestion_window', 'first_velocity_std_mps'} & changes.keys():
             self.noise = self._noise_advisor()
         return old
@@ -156,15 +157,20 @@ class EstimatorSession:
         return Outputs(step, step.measurement_stamp_ns, step.update)
 
     def _add_to_noise_window(self, stamp_ns: int, measurement) -> None:
-        """Give the suggested-q window a fused measurement, with the R the node used."""
-        estimator = self.estimator
+        """Give the suggested-q window a fused measurement and its message's variances."""
         if self.measures_velocity:
             self.noise.add(stamp_ns, (measurement.position_m, measurement.velocity_mps),
-                           (estimator.measurement_variance(measurement.variance_m2),
-                            estimator.velocity_variance(measurement.velocity_variance_m2s2)))
+                           (measurement.variance_m2, measurement.velocity_variance_m2s2))
         else:
-            self.noise.add(stamp_ns, (measurement.position_m,),
-                           (estimator.measurement_variance(measurement.variance_m2),))
+            self.noise.add(stamp_ns, (measurement.position_m,), (measurement.variance_m2,))
+
+    def _node_variances(self, message_variances) -> tuple:
+        """Return the R the node uses for a message's variances (the parameters override)."""
+        estimator = self.estimator
+        variances = (estimator.measurement_variance(message_variances[0]),)
+        if len(message_variances) > 1:
+            variances += (estimator.velocity_variance(message_variances[1]),)
+        return variances
 
     def on_control(self, control, now_ns: int) -> Outputs:
         """Take one control (``stamp_ns``, ``value``); the corrected estimate if it changed."""
@@ -235,7 +241,7 @@ class EstimatorSession:
                             self.controls_received, self.controls_rejected)
         status = filter_status(self.estimator, counts, activity,
                                self.config.options.timeout_s, self.nis)
-        status = with_noise_suggestion(status, self.noise.suggestion(),
+        status = with_noise_suggestion(status, self.noise.suggestion(self._node_variances),
                                        self.config.settings.process_noise_density,
                                        self.noise.span_s)
         if status.timeout_warning is not None and not self.timed_out:

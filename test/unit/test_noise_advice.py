@@ -124,11 +124,16 @@ def test_the_suggestion_is_recomputed_every_third_of_a_window_and_on_new_noise()
     session, clock = session_fed(2.0, 120, 'noise_suggestion_window:=60')
     advisor = session.noise
     assert advisor.window == 60 and advisor.refresh_every == 20
-    first = advisor.suggestion()
+    first = advisor.suggestion(session._node_variances)
     count = advisor._estimate.evaluations
-    assert advisor.suggestion() is first and advisor._estimate.evaluations == count
+    assert advisor.suggestion(session._node_variances) is first
+    assert advisor._estimate.evaluations == count
+    session.apply_changes({'process_noise_density': 1.0})      # q: the same suggestion
+    assert advisor.suggestion(session._node_variances) is first
     session.apply_changes({'measurement_variance': 4.0})       # R changed: recompute
-    assert advisor.suggestion() is not first
+    second = advisor.suggestion(session._node_variances)
+    # with R = 4 on R = 1 data the window wants less q
+    assert second.process_noise_density < first.process_noise_density
     # a live change of the window starts a new, empty one
     session.apply_changes({'noise_suggestion_window': 100})
     assert session.noise is not advisor and session.noise.suggestion() is None
