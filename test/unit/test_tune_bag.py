@@ -13,10 +13,11 @@ import math
 from kf_train.cli import main as kf_train_main
 from kf_train.cli.bag_replay import load_config
 from kf_train.cli.tune import main as tune_main
+from kf_train.io.bagio_output import odometry_message
 from kf_train.io.bagio_simulation import SimulationBag
-from kf_train.io.bagio_types import TYPESTORE
+from kf_train.io.bagio_types import ODOMETRY, TYPESTORE
 from kf_train.ros import estimator_params, param_spec
-from kf_train.sim import white_noise_acceleration_scenario
+from kf_train.sim import cv_position_velocity_scenario, white_noise_acceleration_scenario
 import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
@@ -223,3 +224,27 @@ def test_a_sqlite3_bag_directory_tunes_as_the_mcap(tmp_path, capsys):
     code, mcap_text, err = tune(capsys, mcap, '-o', tmp_path / 'b.yaml')
     same_report(sqlite_text, mcap_text)
     assert 'bag run_db3: 200 measurements on /measurement' in sqlite_text
+
+
+def test_odometry_measurements_give_both_variances(tmp_path, capsys):
+    """cv-position-velocity reads Odometry: position and velocity, both variances carried."""
+    scenario = cv_position_velocity_scenario(seed=2, n_samples=150)
+    bag, table = tmp_path / 'odom.mcap', tmp_path / 'odom.csv'
+    with Writer(bag.with_suffix(''), version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection('/measurement', ODOMETRY, typestore=TYPESTORE)
+        for t, (p, v) in zip(scenario.t_s.tolist(), scenario.z.tolist()):
+            stamp = round(t * NS)
+            message = odometry_message(stamp, 'odom', 'base_link', [p, v],
+                                       [[100.0, 0.0], [0.0, 100.0]])
+            writer.write(connection, stamp, TYPESTORE.serialize_cdr(message, ODOMETRY))
+    table.write_text('t,z_position,z_velocity\n' + ''.join(
+        f'{t!r},{p!r},{v!r}\n' for t, (p, v) in zip(scenario.t_s.tolist(),
+                                                  scenario.z.tolist())))
+    directory = bag.with_suffix('')
+    code, bag_text, err = tune(capsys, directory, '--preset', 'cv-position-velocity',
+                               '-o', tmp_path / 'a.yaml')
+    assert code == 0, err
+    assert 'R = 100, 100, as the messages carry it' in bag_text
+    code, csv_text, err = tune(capsys, table, '--preset', 'cv-position-velocity',
+                               '--fix-r', 100, 100, '-o', tmp_path / 'b.yaml')
+    same_report(bag_text, csv_text)
