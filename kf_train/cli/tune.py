@@ -49,7 +49,7 @@ from kf_train.batch import (
     VARIANCE_PARAMETERS)
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
 from kf_train.cli.replay import write_atomic
-from kf_train.cli.tune_inputs import reader_for, TopicOptions, TuneInput
+from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
 from kf_train.presets import (
     available_presets, load_preset, load_preset_file, Preset, preset_from_mapping)
 import numpy as np
@@ -286,6 +286,10 @@ def _check_args(parser: argparse.ArgumentParser, args) -> None:
         parser.error('--initial-state needs --initialization prior')
     if args.estimate_r and args.fix_r is not None:
         parser.error('--estimate-r and --fix-r exclude each other')
+    if reader_for(args.input) is not read_bag:
+        for option in ('topic', 'control_topic', 'truth_topic'):
+            if getattr(args, option) is not None:
+                parser.error(f"--{option.replace('_', '-')} applies to a bag input only")
 
 
 def carried_variances(data: TuneInput, estimate_r: bool

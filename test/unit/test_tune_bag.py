@@ -248,3 +248,12 @@ def test_odometry_measurements_give_both_variances(tmp_path, capsys):
     code, csv_text, err = tune(capsys, table, '--preset', 'cv-position-velocity',
                                '--fix-r', 100, 100, '-o', tmp_path / 'b.yaml')
     same_report(bag_text, csv_text)
+
+
+def test_topic_options_apply_to_bags_only(tmp_path, capsys):
+    """--topic with a CSV is a usage error (exit 2), as in kf-train replay."""
+    _csv(tmp_path / 'in.csv', white_noise_acceleration_scenario(0.5, 1.0, 20, seed=1))
+    with pytest.raises(SystemExit) as exit_info:
+        tune_main([str(tmp_path / 'in.csv'), '-o', str(tmp_path / 'p.yaml'), '--topic', 'x'])
+    assert exit_info.value.code == 2
+    assert '--topic applies to a bag input only' in capsys.readouterr().err
