@@ -237,9 +237,9 @@ def test_odometry_measurements_give_both_variances(tmp_path, capsys):
             message = odometry_message(stamp, 'odom', 'base_link', [p, v],
                                        [[100.0, 0.0], [0.0, 100.0]])
             writer.write(connection, stamp, TYPESTORE.serialize_cdr(message, ODOMETRY))
-    table.write_text('t,z_position,z_velocity\n' + ''.join(
-        f'{t!r},{p!r},{v!r}\n' for t, (p, v) in zip(scenario.t_s.tolist(),
-                                                  scenario.z.tolist())))
+    rows = zip(scenario.t_s.tolist(), scenario.z.tolist())
+    table.write_text('t,z_position,z_velocity\n'
+                     + ''.join(f'{t!r},{p!r},{v!r}\n' for t, (p, v) in rows))
     directory = bag.with_suffix('')
     code, bag_text, err = tune(capsys, directory, '--preset', 'cv-position-velocity',
                                '-o', tmp_path / 'a.yaml')
