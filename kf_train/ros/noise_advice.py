@@ -70,6 +70,7 @@ class NoiseAdvisor:
         self._stamps_ns = collections.deque(maxlen=max(self.window, 1))
         self._since = 0          # measurements added since the last suggestion
         self._suggestion: Optional[NoiseSuggestion] = None
+        self._due = True         # compute at the next request
         self.span_s = 0.0
         """Time covered by the window of the current suggestion [s]."""
 
@@ -113,6 +114,7 @@ class NoiseAdvisor:
         """Recompute at the next request (the noise parameters changed: R may have)."""
         self._since = 0
         self._suggestion = None
+        self._due = True
 
     def suggestion(self, node_variances: Callable[[Tuple[float, ...]], Sequence[float]]
                    = tuple) -> Optional[NoiseSuggestion]:
@@ -125,8 +127,14 @@ class NoiseAdvisor:
         estimate = self._estimate
         if estimate is None or len(estimate) < estimate.min_samples:
             return None
-        if self._suggestion is None or self._since >= self.refresh_every:
-            self._suggestion = estimate.suggest(node_variances(self._variances))
-            self._since = 0
+        if self._due or self._since >= self.refresh_every:
+            self._since, self._due = 0, False
+            try:
+                self._suggestion = estimate.suggest(node_variances(self._variances))
+            except (ValueError, ArithmeticError):
+                # A window the likelihood cannot take (an R of 0, say): no suggestion
+                # until the next refresh; the diagnostics must never fail over it.
+                self._suggestion = None
+                return None
             self.span_s = (self._stamps_ns[-1] - self._stamps_ns[0]) / 1e9
         return self._suggestion

@@ -170,3 +170,17 @@ def test_small_windows_count_as_ten(window, expected):
     """A window below MIN_WINDOW is MIN_WINDOW."""
     from kf_train.presets import load_preset
     assert noise_advice.NoiseAdvisor(load_preset('train'), window).window == expected
+
+
+def test_a_window_the_likelihood_refuses_gives_no_suggestion_until_the_next_refresh():
+    """R = 0 for the window (impossible for the node, forced here): no keys, no exception."""
+    session, clock = session_fed(2.0, 60)
+    advisor = session.noise
+    assert advisor.suggestion(lambda raw: (0.0,)) is None
+    evaluations = advisor._estimate.evaluations
+    assert advisor.suggestion(lambda raw: (0.0,)) is None      # not retried at once
+    assert advisor._estimate.evaluations == evaluations
+    for k in range(1, advisor.refresh_every + 1):
+        stamp_ns = clock.now_ns + k * NS // 10
+        session.on_measurement(Measurement(stamp_ns, 'odom', 0.0, 1.0), stamp_ns)
+    assert advisor.suggestion(session._node_variances) is not None
