@@ -9,7 +9,7 @@ node's default period). It prints, per window:
 
 * the time per measurement callback, with and without the suggestion (the append);
 * the time per diagnostics status, and of the statuses that recompute the suggestion
-  (every window/3 measurements), its mean and worst;
+  (every window measurements), its mean and worst;
 * the total added per measurement: (time with − time without) / measurements, the
   recomputations included.
 
@@ -21,6 +21,7 @@ figures; nothing is asserted (test/unit/test_noise_advice.py holds the assertion
 import argparse
 import time
 
+from kf_train.ros import noise_advice
 from kf_train.ros.estimator_params import load_estimator_config
 from kf_train.ros.session import EstimatorSession, Measurement
 from kf_train.sim import white_noise_acceleration_scenario
@@ -74,7 +75,7 @@ def main() -> None:
           f'{sum(off_statuses) / len(off_statuses) * 1e6:.0f} µs per status')
     for window in args.windows:
         measuring, statuses = best(window)
-        refresh_every = max(1, window // 3)
+        refresh_every = max(1, window // noise_advice.REFRESH_FRACTION)
         slow = sorted(statuses)[-max(1, n // refresh_every):]
         added = (measuring + sum(statuses) - off_total) / n
         print(f'window {window}: {measuring / n * 1e6:.1f} µs per measurement callback '

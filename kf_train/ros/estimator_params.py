@@ -189,8 +189,8 @@ PARAMETERS_NODE = (
              (1, 1_000_000), group=_G_NODE),
     _integer('noise_suggestion_window', 300,
              'How many of the latest fused measurements the suggested process_noise_density '
-             'in /diagnostics is estimated from (maximum likelihood, recomputed every third '
-             'of a window; shown from 30 on, with which way and how far to move q). 0 turns '
+             'in /diagnostics is estimated from (maximum likelihood, recomputed once per '
+             'window; shown from 30 on, with which way and how far to move q). 0 turns '
              'it off; below 10 counts as 10. Presets without q (robot) never show it.',
              (0, 3000), group=_G_NODE),
     ParamSpec('reset_on_clock_jump', 'bool', True,
