@@ -6,7 +6,8 @@ The inputs are those of ``kf-train replay``, read by the replay's own readers:
 * a CSV (or '-', standard input): the replay's table reader
   (:func:`kf_train.cli.replay.read_table`: ``t``, the measurement columns, ``u``
   where the preset has a control, optionally ``id``), plus optional truth columns
-  ``true_<state>``;
+  ``true_<state>``; a row with an empty measurement cell (a dropped sample) is left
+  out, as the node never receives it;
 * a ``.parquet`` file or a directory of Parquet files (the ``[fast]`` extra): the same
   columns, read by :mod:`kf_train.io.columnar`; errors name the row;
 * a bag (a rosbag2 directory, MCAP or sqlite3, or a single ``.mcap`` / ``.db3`` file):
@@ -94,19 +95,29 @@ def _header(data: bytes) -> List[str]:
 
 
 def table_segments(path: str, preset: Preset, columns: dict, lines: np.ndarray,
-                   ids: Optional[np.ndarray] = None,
-                   id_labels: Optional[List[str]] = None) -> List[Segment]:
-    """Return the segments (one per id) of a table's columns; InputError names the line."""
+                   ids: Optional[np.ndarray] = None, id_labels: Optional[List[str]] = None,
+                   missing: Optional[np.ndarray] = None) -> List[Segment]:
+    """
+    Return the segments (one per id) of a table's columns; InputError names the line.
+
+    ``missing`` flags rows without a measurement (a dropped sample): they are left out,
+    as the node, which never receives them, predicts across the gap.
+    """
     t = columns['t']
     if t.shape[0] == 0:
         raise InputError(f'{path}: no rows: nothing to estimate from')
     first = float(np.min(t))
     if ids is None:
         check_times(path, t, lines, first)
-        groups = group_rows(np.zeros(t.shape[0], dtype=np.int64))
     else:
-        groups = group_rows(ids)
-        check_bank_times(path, t, lines, groups, id_labels, first)
+        check_bank_times(path, t, lines, group_rows(ids), id_labels, first)
+    if missing is not None and missing.any():
+        keep = ~missing
+        if not keep.any():
+            raise InputError(f'{path}: no row has a measurement: nothing to estimate from')
+        columns = {name: values[keep] for name, values in columns.items()}
+        t, ids = columns['t'], None if ids is None else ids[keep]
+    groups = group_rows(np.zeros(t.shape[0], dtype=np.int64) if ids is None else ids)
     z = np.column_stack([columns[next(n for n in names if n in columns)]
                          for names in preset.measurement_columns()])
     u = (np.column_stack([columns[n] for n in preset.control_columns()])
@@ -130,12 +141,16 @@ def read_csv(path: str, preset: Preset, topics: TopicOptions = TopicOptions()) -
     data = _read_bytes(path)
     header = _header(data)
     truth_columns = [TRUTH_PREFIX + s for s in preset.state_names if TRUTH_PREFIX + s in header]
-    table = read_table(path, required_columns(preset) + [(c,) for c in truth_columns], data,
-                       ids=True)
+    needed = required_columns(preset)
+    table = read_table(path, needed + [(c,) for c in truth_columns], data, ids=True,
+                       gaps=needed[1:1 + preset.dim_z])   # a dropped sample: no measurement
     if table.rows == 0:
         raise InputError(f'{path}: no rows: nothing to estimate from')
-    return TuneInput(table_segments(path, preset, table.columns, table.lines, table.ids,
-                                    table.id_labels))
+    segments = table_segments(path, preset, table.columns, table.lines, table.ids,
+                              table.id_labels, table.missing)
+    gaps = 0 if table.missing is None else int(np.count_nonzero(table.missing))
+    return TuneInput(segments, summary=f'{gaps} rows without a measurement (dropped samples) '
+                     'left out' if gaps else '')
 
 
 def _parquet_names(path: str, header: List[str], preset: Preset) -> List[str]:

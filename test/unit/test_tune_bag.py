@@ -257,3 +257,19 @@ def test_topic_options_apply_to_bags_only(tmp_path, capsys):
         tune_main([str(tmp_path / 'in.csv'), '-o', str(tmp_path / 'p.yaml'), '--topic', 'x'])
     assert exit_info.value.code == 2
     assert '--topic applies to a bag input only' in capsys.readouterr().err
+
+
+def test_dropped_samples_tune_alike_in_the_csv_and_the_bag(tmp_path, capsys):
+    """Dropout: the CSV's empty cells are left out, as the bag simply lacks them."""
+    bag, table = tmp_path / 'drop.mcap', tmp_path / 'drop.csv'
+    for output in (bag, table):
+        assert simulate('--duration', 20, '--seed', 6, '-p', 'dropout_probability:=0.2',
+                        '--output', output) == 0
+    code, csv_text, err = tune(capsys, table, '--fix-r', 1.0, '-o', tmp_path / 'a.yaml')
+    assert code == 0, err
+    gaps = int(csv_text.split('input: ')[1].split(' rows without')[0])
+    assert gaps > 10
+    code, bag_text, err = tune(capsys, bag, '-o', tmp_path / 'b.yaml')
+    assert code == 0, err
+    assert f'preset train, {200 - gaps} rows' in bag_text
+    same_report(bag_text, csv_text)
