@@ -42,10 +42,12 @@ from typing import Callable, Iterator, List, NamedTuple, Optional
 from kf_train.cli.progress import counted
 from kf_train.cli.replay import write_atomic
 from kf_train.estimator import StreamEstimator
-from kf_train.io import bagio, bagio_output
+from kf_train.io import bagio, bagio_output, csvio
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
+import numpy as np
 
 NS_PER_S = 1_000_000_000
+NAN = float('nan')
 CSV_ROWS_PER_CHUNK = 4096
 
 
@@ -128,29 +130,54 @@ def csv_header(state_names) -> List[str]:
     return header + ['nis']
 
 
-def _csv_row(step, update) -> str:
-    """Return one CSV line for a published step."""
-    n = len(step.x)
-    values = [step.stamp_ns / NS_PER_S]
-    values += step.x.tolist() + [step.P[i, i] for i in range(n)]
-    values += step.predicted_x.tolist() + [step.predicted_P[i, i] for i in range(n)]
-    cells = [repr(float(v)) for v in values]
-    cells.append('' if update is None else repr(float(update.nis)))
-    return ','.join(cells) + '\n'
+def _csv_values(step, update, diagonal: slice) -> list:
+    """Return one CSV row's numbers for a published step (NaN for no nis)."""
+    row = [step.stamp_ns / NS_PER_S] + step.x.tolist()
+    row += step.P.ravel().tolist()[diagonal]
+    row += step.predicted_x.tolist()
+    row += step.predicted_P.ravel().tolist()[diagonal]
+    row.append(NAN if update is None else update.nis)
+    return row
 
 
-def _csv_chunks(run: BagRun, counts: dict) -> Iterator[str]:
+def _csv_block(rows: list, no_nis: list) -> bytes:
+    """
+    Return rows of numbers as CSV text, each number as ``repr`` writes it.
+
+    Formatted in bulk by :func:`kf_train.io.csvio.format_rows` (the text ``repr``
+    gives, vectorised); the rows listed in ``no_nis`` (no update that step: the
+    filter's initialisation, a correction) get an empty ``nis`` cell instead of 'nan'.
+    """
+    if not rows:
+        return b''
+    table = np.array(rows, dtype=np.float64)
+    text = csvio.format_rows(list(table.T))
+    if no_nis:
+        lines = text.split(b'\n')
+        for index in no_nis:
+            lines[index] = lines[index][:-len(b'nan')]
+        text = b'\n'.join(lines)
+    return text
+
+
+def _csv_chunks(run: BagRun, counts: dict) -> Iterator:
     """Yield the CSV output in chunks of lines."""
-    yield ','.join(csv_header(run.preset.state_names)) + '\n'
-    lines = []
+    state_names = run.preset.state_names
+    yield ','.join(csv_header(state_names)) + '\n'
+    diagonal = slice(None, None, len(state_names) + 1)   # P[i, i] of the flattened P
+    rows, no_nis = [], []
     for _, outputs in run.outputs():
-        if outputs.step is not None:
-            counts['estimates'] += 1
-            lines.append(_csv_row(outputs.step, outputs.update))
-            if len(lines) >= CSV_ROWS_PER_CHUNK:
-                yield ''.join(lines)
-                lines = []
-    yield ''.join(lines)
+        step = outputs.step
+        if step is not None:
+            if outputs.update is None:
+                no_nis.append(len(rows))
+            rows.append(_csv_values(step, outputs.update, diagonal))
+            if len(rows) >= CSV_ROWS_PER_CHUNK:
+                counts['estimates'] += len(rows)
+                yield _csv_block(rows, no_nis)
+                rows, no_nis = [], []
+    counts['estimates'] += len(rows)
+    yield _csv_block(rows, no_nis)
 
 
 def write_csv(run: BagRun, path: str, counts: dict) -> None:

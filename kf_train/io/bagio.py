@@ -151,21 +151,22 @@ _FIELDS = {
 
 def _decoder(kind: str, is_measurement: bool) -> Callable:
     """Return a function (raw bytes, record time) -> Measurement or Control for ``kind``."""
+    # FieldReader gives Python floats and ints, whichever way it read them.
     read = FieldReader(kind, _FIELDS[kind]).read
 
     def measurement(raw, record_ns: int) -> Measurement:
         frame_id, (sec, nanosec, position, variance) = read(raw)
-        return Measurement(record_ns, sec * NS_PER_S + nanosec, frame_id, float(position),
-                           float(variance), NAN, NAN)
+        return Measurement(record_ns, sec * NS_PER_S + nanosec, frame_id, position, variance,
+                           NAN, NAN)
 
     def odometry(raw, record_ns: int) -> Measurement:
         frame_id, (sec, nanosec, position, variance, velocity, velocity_variance) = read(raw)
-        return Measurement(record_ns, sec * NS_PER_S + nanosec, frame_id, float(position),
-                           float(variance), float(velocity), float(velocity_variance))
+        return Measurement(record_ns, sec * NS_PER_S + nanosec, frame_id, position, variance,
+                           velocity, velocity_variance)
 
     def control(raw, record_ns: int) -> Control:
         frame_id, (sec, nanosec, value) = read(raw)
-        return Control(record_ns, sec * NS_PER_S + nanosec, frame_id, float(value))
+        return Control(record_ns, sec * NS_PER_S + nanosec, frame_id, value)
 
     if not is_measurement:
         return control

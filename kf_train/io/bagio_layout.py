@@ -136,7 +136,8 @@ class FieldReader:
     """
     Reads ``fields`` (and header.frame_id) of serialized messages of one type.
 
-    :meth:`read` returns ``(frame_id, values)``, equal to what rosbags deserialises:
+    :meth:`read` returns ``(frame_id, values)``, equal to what rosbags deserialises
+    (as Python floats and ints):
     from a learnt layout when the message's key has one, else from rosbags (learning
     a layout for the key). Every field read must lie in the stamp or after the last
     string of the message (true of the header-first messages kf_train reads).
@@ -152,16 +153,22 @@ class FieldReader:
         """Return header.frame_id and the fields' values of one serialized message."""
         if len(raw) < _FRAME_AT:
             message = TYPESTORE.deserialize_cdr(raw, self.kind)  # raises: too short
-            return message.header.frame_id, tuple(get_field(message, p) for p, _ in self.fields)
+            return self._values(message)
         key = (raw[1], bytes(raw[_FRAME_LENGTH_AT:_FRAME_AT]), len(raw))
         layout = self._layouts.get(key)
         if layout is not None:
             return _unpack(layout, raw)
         message = TYPESTORE.deserialize_cdr(raw, self.kind)
-        result = message.header.frame_id, tuple(get_field(message, p) for p, _ in self.fields)
+        result = self._values(message)
         if key not in self._layouts:
             self._layouts[key] = self._learn(message, raw, result)
         return result
+
+    def _values(self, message) -> Tuple[str, tuple]:
+        """Return header.frame_id and the fields of a deserialised message as Python numbers."""
+        return message.header.frame_id, tuple(
+            float(get_field(message, path)) if form == 'd' else int(get_field(message, path))
+            for path, form in self.fields)
 
     def _learn(self, message, raw, expected) -> Optional[tuple]:
         """Return the layout of messages like ``raw``, checked on it, or None."""
@@ -169,13 +176,13 @@ class FieldReader:
         located = _locate(message, self.kind, self.fields, little_endian)
         if located is None or len(located[0]) != len(raw):
             return None
+        offsets, forms = located[1], [form for _, form in self.fields]
+        if any(offsets[i] + _FORMATS[forms[i]] > offsets[i + 1]
+               for i in range(len(offsets) - 1)):
+            return None  # not in field order: rosbags reads these messages
         order = '<' if little_endian else '>'
         frame_end = _FRAME_AT + struct.unpack_from(order + 'I', raw, _FRAME_LENGTH_AT)[0] - 1
-        # A field after the strings: kept as its distance from the end (negative).
-        positions = tuple(offset - len(raw) if offset >= frame_end else offset
-                          for offset in located[1])
-        layout = (tuple(struct.Struct(order + form).unpack_from for _, form in self.fields),
-                  positions, frame_end)
+        layout = (_one_struct(order, offsets, forms), frame_end)
         try:
             frame_id, values = _unpack(layout, raw)
         except (struct.error, UnicodeDecodeError):
@@ -186,10 +193,22 @@ class FieldReader:
         return layout if same else None
 
 
+def _one_struct(order: str, offsets: Sequence[int], forms: Sequence[str]) -> Callable:
+    """
+    Return unpack_from(raw) -> the fields' values, in field order, in one struct call.
+
+    The fields at ``offsets`` (increasing, not overlapping) with pad bytes between. A
+    layout is for one key (module doc): one total length and one frame_id length, so
+    every offset is fixed, those after the strings included.
+    """
+    text, at = order, 0
+    for offset, form in zip(offsets, forms):
+        text += f'{offset - at}x{form}' if offset > at else form
+        at = offset + _FORMATS[form]
+    return struct.Struct(text).unpack_from
+
+
 def _unpack(layout: tuple, raw) -> Tuple[str, tuple]:
     """Return header.frame_id and the field values of ``raw`` read by ``layout``."""
-    unpackers, positions, frame_end = layout
-    end = len(raw)
-    values = tuple(unpack(raw, position + end if position < 0 else position)[0]
-                   for unpack, position in zip(unpackers, positions))
-    return bytes(raw[_FRAME_AT:frame_end]).decode('utf-8'), values
+    unpack, frame_end = layout
+    return str(raw[_FRAME_AT:frame_end], 'utf-8'), unpack(raw)
