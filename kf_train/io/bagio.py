@@ -49,8 +49,11 @@ NAN = float('nan')
 NS_PER_S = 1_000_000_000
 # At most this many topics are listed in an error message.
 LISTED_TOPICS = 8
-# What the rosbags reader raises on broken storage; decoding adds SerdeError.
-_STORAGE_ERRORS = (ReaderError, OSError, KeyError, ValueError, EOFError, IndexError)
+# What the rosbags reader raises on broken storage; decoding adds SerdeError. A garbled
+# record length in an MCAP chunk overflows a seek (OverflowError) or a struct unpack
+# (struct.error), or trips one of rosbags' own asserts on the records it found.
+_STORAGE_ERRORS = (ReaderError, OSError, KeyError, ValueError, EOFError, IndexError,
+                   OverflowError, struct.error, AssertionError)
 
 
 class Measurement(NamedTuple):
