@@ -11,6 +11,11 @@ the node publishes (:mod:`kf_train.ros.simulator_node`, kf_train/ros/messages.py
 * ``control`` (scenarios with one): geometry_msgs/msg/AccelStamped (``accel.linear.x``)
   or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``.
 
+Each message is one serialized by rosbags once per type and frame, its numbers
+overwritten in place (:class:`kf_train.io.bagio_layout.PatchTemplate`, checked against
+rosbags), and appended by :class:`kf_train.io.bagio_mcap.MessageAppender`: the bytes
+rosbags writes, ~10x faster.
+
 Relative names are resolved in ``namespace``. The bag is written into a temporary
 directory beside the target and moved into place by :meth:`close` (a directory, or
 for a path ending in ``.mcap`` the single MCAP file); an exception inside the
@@ -20,15 +25,24 @@ for a path ending in ``.mcap`` the single MCAP file); an exception inside the
 from pathlib import Path
 import shutil
 import tempfile
-from typing import Optional, Union
+import struct
+from typing import Dict, Optional, Tuple, Union
 
-from kf_train.io.bagio_output import _check_target, AtomicBag, odometry_message
+from kf_train.io.bagio_layout import PatchTemplate
+from kf_train.io.bagio_mcap import MessageAppender
+from kf_train.io.bagio_output import (
+    _check_target, _stamp_error, AtomicBag, ODOMETRY_FIELDS, odometry_message)
 from kf_train.io.bagio_types import ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST, TYPESTORE
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
 NS_PER_S = 1_000_000_000
 _T = TYPESTORE.types
+_STAMP = ((('header', 'stamp', 'sec'), 'i'), (('header', 'stamp', 'nanosec'), 'I'))
+MEASUREMENT_FIELDS = _STAMP + ((('pose', 'pose', 'position', 'x'), 'd'),
+                               (('pose', 'covariance', 0), 'd'))
+CONTROL_FIELDS = {ACCEL: _STAMP + ((('accel', 'linear', 'x'), 'd'),),
+                  TWIST: _STAMP + ((('twist', 'linear', 'x'), 'd'),)}
 
 
 def _header(stamp_ns: int, frame_id: str):
@@ -89,26 +103,53 @@ class SimulationBag(AtomicBag):
             shutil.rmtree(self._temporary, ignore_errors=True)
             raise
         self.counts = dict.fromkeys(self._connections, 0)
+        self._appender = MessageAppender(self._writer)
+        self._templates: Dict[Tuple[str, ...], PatchTemplate] = {}
 
     def write(self, topic: str, record_ns: int, message) -> None:
-        """Write ``message`` on ``topic`` (measurement, ground_truth, control)."""
+        """Write ``message`` (a rosbags message) on ``topic``: measurement, ground_truth, control."""
         connection, kind = self._connections[topic]
-        self._writer.write(connection, int(record_ns), TYPESTORE.serialize_cdr(message, kind))
+        self._appender.write(connection, int(record_ns), TYPESTORE.serialize_cdr(message, kind))
         self.counts[topic] += 1
+
+    def _write_filled(self, topic: str, frames: Tuple[str, ...], record_ns: int,
+                      stamp_ns: int, *values) -> None:
+        """Write the topic's message for ``frames`` with the stamp and ``values`` in it."""
+        key = (topic,) + frames
+        template = self._templates.get(key)
+        if template is None:
+            template = self._templates[key] = self._template(topic, frames)
+        sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+        try:
+            raw = template.fill(sec, nanosec, *values)
+        except struct.error:
+            raise _stamp_error(stamp_ns) from None
+        self._appender.write(self._connections[topic][0], int(record_ns), raw)
+        self.counts[topic] += 1
+
+    def _template(self, topic: str, frames: Tuple[str, ...]) -> PatchTemplate:
+        """Return the patch template of a topic's message in ``frames``."""
+        if topic == 'measurement':
+            return PatchTemplate(measurement_message(0, frames[0], 0.0, 0.0), POSE,
+                                 MEASUREMENT_FIELDS)
+        if topic == 'ground_truth':
+            return PatchTemplate(odometry_message(0, frames[0], frames[1], [0.0, 0.0],
+                                                  np.zeros((2, 2))), ODOMETRY, ODOMETRY_FIELDS)
+        return PatchTemplate(control_message(self.control_type, 0, frames[0], 0.0),
+                             self.control_type, CONTROL_FIELDS[self.control_type])
 
     def write_measurement(self, record_ns: int, stamp_ns: int, frame_id: str,
                           position_m: float, variance_m2: float) -> None:
         """Write a position measurement."""
-        self.write('measurement', record_ns,
-                   measurement_message(stamp_ns, frame_id, position_m, variance_m2))
+        self._write_filled('measurement', (frame_id,), record_ns, stamp_ns,
+                           float(position_m), float(variance_m2))
 
     def write_truth(self, record_ns: int, stamp_ns: int, frame_id: str, child_frame_id: str,
                     position_m: float, velocity_mps: float) -> None:
         """Write a ground truth odometry (variances 0)."""
-        self.write('ground_truth', record_ns, odometry_message(
-            stamp_ns, frame_id, child_frame_id, [position_m, velocity_mps], np.zeros((2, 2))))
+        self._write_filled('ground_truth', (frame_id, child_frame_id), record_ns, stamp_ns,
+                           float(position_m), 0.0, float(velocity_mps), 0.0)
 
     def write_control(self, record_ns: int, stamp_ns: int, frame_id: str, value: float) -> None:
         """Write a control (the scenario's type)."""
-        self.write('control', record_ns,
-                   control_message(self.control_type, stamp_ns, frame_id, value))
+        self._write_filled('control', (frame_id,), record_ns, stamp_ns, float(value))
