@@ -11,6 +11,19 @@ same sample streams (:func:`kf_train.sim.make_stream`) and fault injection
 ``--duration S`` gives round(S·rate_hz) samples; sample k is taken at t_k = k/rate_hz
 (+ ``--start S``), and its stamp is t_k (plus a clock jump, if injected).
 
+The node's live-only parameters, decided offline:
+
+* ``max_samples`` (N > 0) caps the run at N samples, as it stops the node; with it,
+  ``--duration`` may be left out. One of the two is needed (0, the node's "forever",
+  has no end offline).
+* ``publish_clock`` true writes ``/clock`` (rosgraph_msgs/msg/Clock, from rosbags'
+  Jazzy typestore) into a bag: each sample's stamp (jumped with the clock, as the node
+  publishes it), recorded at the sample time, before the sample's other messages. A
+  CSV has no topics (its ``t`` is the stamp already): publish_clock with a CSV output
+  is refused with a one-line error.
+* ``min_subscribers`` only makes the node wait before its first sample; the samples
+  and stamps do not depend on it, so it is accepted and has nothing to do offline.
+
 Output (``--output``):
 
 * ``X.mcap`` or a directory: a rosbag2 MCAP bag with ``measurement``
@@ -26,8 +39,7 @@ Output (``--output``):
   which a CSV replay refuses).
 
 Errors (a bad parameter, an output that cannot be written) are one line, exit 1, and
-no output is left behind. ``max_samples``, ``min_subscribers`` and ``publish_clock``
-concern the live node only and are ignored here.
+no output is left behind.
 """
 
 import argparse
@@ -53,7 +65,7 @@ class Event(NamedTuple):
     """One message of the run: its topic, record time, stamp and value(s)."""
 
     topic: str
-    """measurement, control or ground_truth."""
+    """measurement, control, ground_truth or clock."""
     record_ns: int
     stamp_ns: int
     index: int
@@ -69,6 +81,7 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
     delay_ns = round(config.faults.delay_s * NS_PER_S)
     variance = stream.noise_std_m ** 2
     has_control = CONTROL_NAMES[config.scenario] is not None
+    clock = config.options.publish_clock
     pending = collections.deque()   # delayed measurements, in due order (a fixed delay)
     for _ in range(samples):
         sample = stream.next_sample()
@@ -76,6 +89,8 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
         while pending and pending[0].record_ns <= sample_ns:
             yield pending.popleft()
         stamp_ns = faults.jumped_stamp_ns(sample.t_s, sample_ns)
+        if clock:
+            yield Event('clock', sample_ns, stamp_ns, sample.index, ())
         if has_control:
             yield Event('control', sample_ns, stamp_ns, sample.index, (sample.control,))
         deliveries = faults.apply(sample.index, sample.t_s, sample_ns,
@@ -99,12 +114,15 @@ def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
     from kf_train.io import bagio_simulation   # needs rosbags: imported when used
     options = config.options
     frame, child = options.frame_id, options.child_frame_id
-    with bagio_simulation.SimulationBag(path, CONTROL_NAMES[config.scenario]) as bag:
+    with bagio_simulation.SimulationBag(path, CONTROL_NAMES[config.scenario],
+                                        clock=options.publish_clock) as bag:
         for event in run_events(config, samples, start_ns):
             if event.topic == 'measurement':
                 bag.write_measurement(event.record_ns, event.stamp_ns, frame, *event.values)
             elif event.topic == 'control':
                 bag.write_control(event.record_ns, event.stamp_ns, child, *event.values)
+            elif event.topic == 'clock':
+                bag.write_clock(event.record_ns, event.stamp_ns)
             else:
                 bag.write_truth(event.record_ns, event.stamp_ns, frame, child, *event.values)
         return dict(bag.counts)
@@ -173,8 +191,9 @@ def _parser() -> argparse.ArgumentParser:
                + ' (kf-train simulator --ros-args ... describes them).')
     parser.add_argument('--scenario', metavar='NAME', default=None,
                         help="the scenario (-p scenario:=NAME; default the node's, train)")
-    parser.add_argument('--duration', metavar='S', type=float, required=True,
-                        help='simulated time [s]: round(S * rate_hz) samples')
+    parser.add_argument('--duration', metavar='S', type=float, default=None,
+                        help='simulated time [s]: round(S * rate_hz) samples (capped by '
+                             '-p max_samples:=N; one of the two is needed)')
     parser.add_argument('--seed', type=int, default=None, help='-p seed:=N (default 0)')
     parser.add_argument('--start', metavar='S', type=float, default=0.0,
                         help='time of sample 0 [s] (default 0: sample k at k / rate_hz)')
@@ -204,19 +223,34 @@ def load_config(args: argparse.Namespace):
     return simulator_params.load_simulator_config(files, overrides)
 
 
+def sample_count(duration_s: Optional[float], config) -> int:
+    """Return the samples to take: --duration's, capped by max_samples (module doc)."""
+    cap = config.options.max_samples
+    if duration_s is None:
+        if not cap:
+            raise ValueError('give --duration S or -p max_samples:=N (the run needs an end)')
+        return cap
+    if not (math.isfinite(duration_s) and duration_s > 0.0):
+        raise ValueError(f'--duration must be a finite number > 0, got {duration_s}')
+    samples = round(duration_s * config.rate_hz)
+    if not 1 <= samples <= MAX_SAMPLES:
+        raise ValueError(f'--duration {duration_s} s at {config.rate_hz} Hz gives '
+                         f'{samples} samples; 1 to {MAX_SAMPLES} are possible')
+    return min(samples, cap) if cap else samples
+
+
 def simulate(args: argparse.Namespace) -> str:
     """Write the run the arguments describe; return a summary; ValueError (one line)."""
     config = load_config(args)
-    if not (math.isfinite(args.duration) and args.duration > 0.0):
-        raise ValueError(f'--duration must be a finite number > 0, got {args.duration}')
     if not math.isfinite(args.start) or abs(args.start) > 2.0 ** 31 / 2:
         raise ValueError(f'--start must be a finite number of seconds, got {args.start}')
-    samples = round(args.duration * config.rate_hz)
-    if not 1 <= samples <= MAX_SAMPLES:
-        raise ValueError(f'--duration {args.duration} s at {config.rate_hz} Hz gives '
-                         f'{samples} samples; 1 to {MAX_SAMPLES} are possible')
+    samples = sample_count(args.duration, config)
     start_ns = round(args.start * NS_PER_S)
-    writer = write_csv if args.output.lower().endswith('.csv') else write_bag
+    to_csv = args.output.lower().endswith('.csv')
+    if to_csv and config.options.publish_clock:
+        raise ValueError('publish_clock writes /clock into a bag; a CSV has no topics (its t '
+                         'is the stamp): give a bag output or leave publish_clock false')
+    writer = write_csv if to_csv else write_bag
     counts = writer(config, samples, args.output, start_ns)
     listed = ', '.join(f'{n} {topic}' for topic, n in counts.items()
                        if n or topic != 'control')

@@ -9,7 +9,8 @@ the node publishes (:mod:`kf_train.ros.simulator_node`, kf_train/ros/messages.py
   entry 1e9, orientation identity;
 * ``ground_truth``: nav_msgs/msg/Odometry, position and velocity, variances 0;
 * ``control`` (scenarios with one): geometry_msgs/msg/AccelStamped (``accel.linear.x``)
-  or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``.
+  or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``;
+* ``/clock`` (with ``clock=True``, as ``publish_clock``): rosgraph_msgs/msg/Clock.
 
 Each message is one serialized by rosbags once per type and frame, its numbers
 overwritten in place (:class:`kf_train.io.bagio_layout.PatchTemplate`, checked against
@@ -41,6 +42,8 @@ _T = TYPESTORE.types
 _STAMP = ((('header', 'stamp', 'sec'), 'i'), (('header', 'stamp', 'nanosec'), 'I'))
 MEASUREMENT_FIELDS = _STAMP + ((('pose', 'pose', 'position', 'x'), 'd'),
                                (('pose', 'covariance', 0), 'd'))
+CLOCK = 'rosgraph_msgs/msg/Clock'
+CLOCK_FIELDS = ((('clock', 'sec'), 'i'), (('clock', 'nanosec'), 'I'))
 CONTROL_FIELDS = {ACCEL: _STAMP + ((('accel', 'linear', 'x'), 'd'),),
                   TWIST: _STAMP + ((('twist', 'linear', 'x'), 'd'),)}
 
@@ -78,8 +81,10 @@ class SimulationBag(AtomicBag):
     """A simulated run being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], control_name: Optional[str],
-                 namespace: str = ''):
+                 namespace: str = '', clock: bool = False):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
+        if clock and CLOCK not in TYPESTORE.types:
+            raise ValueError(f'publish_clock: the rosbags typestore has no {CLOCK}')
         self.path = Path(path)
         self.single_file = self.path.suffix == '.mcap'
         _check_target(self.path, self.single_file)
@@ -93,12 +98,15 @@ class SimulationBag(AtomicBag):
         topics = [('measurement', POSE), ('ground_truth', ODOMETRY)]
         if self.control_type is not None:
             topics.append(('control', self.control_type))
+        if clock:
+            topics.append(('/clock', CLOCK))
         try:
             self._writer = Writer(self._written, version=9, storage_plugin=StoragePlugin.MCAP)
             self._writer.open()
             self._connections = {
-                name: (self._writer.add_connection(prefix + name, kind, typestore=TYPESTORE),
-                       kind) for name, kind in topics}
+                name.lstrip('/'): (self._writer.add_connection(
+                    name if name.startswith('/') else prefix + name, kind,
+                    typestore=TYPESTORE), kind) for name, kind in topics}
         except BaseException:
             shutil.rmtree(self._temporary, ignore_errors=True)
             raise
@@ -107,7 +115,7 @@ class SimulationBag(AtomicBag):
         self._templates: Dict[Tuple[str, ...], PatchTemplate] = {}
 
     def write(self, topic: str, record_ns: int, message) -> None:
-        """Write ``message`` (a rosbags message) on ``topic``: measurement, ground_truth, control."""
+        """Write ``message`` (a rosbags message) on ``topic`` (a name of :attr:`counts`)."""
         connection, kind = self._connections[topic]
         self._appender.write(connection, int(record_ns), TYPESTORE.serialize_cdr(message, kind))
         self.counts[topic] += 1
@@ -135,6 +143,9 @@ class SimulationBag(AtomicBag):
         if topic == 'ground_truth':
             return PatchTemplate(odometry_message(0, frames[0], frames[1], [0.0, 0.0],
                                                   np.zeros((2, 2))), ODOMETRY, ODOMETRY_FIELDS)
+        if topic == 'clock':
+            return PatchTemplate(_T[CLOCK](clock=_T['builtin_interfaces/msg/Time'](
+                sec=0, nanosec=0)), CLOCK, CLOCK_FIELDS)
         return PatchTemplate(control_message(self.control_type, 0, frames[0], 0.0),
                              self.control_type, CONTROL_FIELDS[self.control_type])
 
@@ -149,6 +160,10 @@ class SimulationBag(AtomicBag):
         """Write a ground truth odometry (variances 0)."""
         self._write_filled('ground_truth', (frame_id, child_frame_id), record_ns, stamp_ns,
                            float(position_m), 0.0, float(velocity_mps), 0.0)
+
+    def write_clock(self, record_ns: int, stamp_ns: int) -> None:
+        """Write a /clock message holding ``stamp_ns``."""
+        self._write_filled('clock', (), record_ns, stamp_ns)
 
     def write_control(self, record_ns: int, stamp_ns: int, frame_id: str, value: float) -> None:
         """Write a control (the scenario's type)."""
