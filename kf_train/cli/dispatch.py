@@ -21,7 +21,7 @@ COMMANDS = {
     'simulator': ('kf_train.ros.simulator_node', 'run the simulator node (ROS arguments follow)'),
     'estimator': ('kf_train.ros.estimator_node', 'run the estimator node (ROS arguments follow)'),
     'demo': ('kf_train.cli.demo', 'run seed 000 over DDS with both nodes and print a report'),
-    'replay': ('kf_train.cli.replay', 'run a preset filter over a CSV of measurements, offline'),
+    'replay': ('kf_train.cli.replay', 'run a filter over a CSV, Parquet or rosbag2 bag, offline'),
     'simulate': ('kf_train.cli.simulate', 'write a simulated run to a bag or CSV, no DDS'),
     'plot': ('kf_train.cli.plotting', "write PNG figures: the seeds' scenarios or a replay"),
     'compare': ('kf_train.cli.compare', 'compare KF/EKF, UKF and particle filter by Monte Carlo'),

@@ -1,5 +1,7 @@
 """
-``kf-train replay``: run a preset's filter over a CSV of measurements, offline.
+``kf-train replay``: a preset's filter over a CSV or Parquet table (or a bag), offline.
+
+A rosbag2 INPUT goes to :mod:`kf_train.cli.bag_replay` (the estimator node's session).
 
 The command streams (:mod:`kf_train.cli.replay_stream`: any size in bounded memory,
 CSV or Parquet) unless ``--engine memory`` asks for :func:`replay` below, which holds
@@ -532,9 +534,12 @@ def _parser() -> argparse.ArgumentParser:
     """Return the argument parser."""
     parser = argparse.ArgumentParser(
         prog='kf-train replay',
-        description='Run a preset filter over measurements (CSV or Parquet, any size: '
-                    'streamed in blocks) and write the estimates (CSV or Parquet).',
-        epilog='Input: a header, then rows with t [s], the measurements z_position, '
+        description='Run a filter over recorded measurements, offline. INPUT is a CSV or '
+                    'Parquet table (a preset filter, any size, streamed in blocks; '
+                    'estimates to CSV or Parquet) or a rosbag2 bag: a directory (MCAP or '
+                    "sqlite3), .mcap or .db3 (the estimator node's own session and "
+                    'parameters; estimates to CSV, or to an MCAP bag of the node topics).',
+        epilog='Table input: a header, then rows with t [s], the measurements z_position, '
                'z_velocity, z_bearing [rad], z_range [m] the preset uses, and u when it '
                'has a control input (the control over the interval ending at the row); '
                'optionally id: each id is an independent object with its own series. '
