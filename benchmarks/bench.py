@@ -23,6 +23,10 @@ Rows (``--rows``, default all that exist):
    Parquet throughput, 200 000 rows against a plain filterpy script, the fleet beside
    simdkalman at 10⁵ and 10⁶ filters, and ``--engine dask``.
 8. Live fleet capacity: one estimator per train at 10 Hz, its CPU share and memory.
+9. Bags: ``kf-train replay BAG`` on 10⁵ measurements (10⁴ s at 10 Hz) into CSV and
+   MCAP, default and seed-000 parameters: real-time factor, CPU, peak RSS (and at a
+   tenth of the data: flat memory), where the CPU goes (filter against the replay's
+   own overhead), and ``kf-train simulate`` writing the input.
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -32,7 +36,8 @@ every measurement (a smoke test, not figures to quote).
 This directory is not installed with kf_train (it imports filterpy, a test and
 benchmark oracle): ``make bench`` runs this file, ``kf-train bench`` too from a source
 checkout. Rows 1-3 are in bench_core.py, rows 4-5 in bench_live.py, row 6 in
-bench_filters.py, rows 7-8 in bench_scale.py, the child processes in bench_children.py
+bench_filters.py, rows 7-8 in bench_scale.py, row 9 in bench_bag.py, the child processes
+in bench_children.py
 and the helper nodes are the node_*.py files.
 """
 
@@ -44,7 +49,8 @@ from typing import List, Optional
 
 # The modules beside this file, also when it is loaded by path (kf-train bench, tests).
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from bench_common import header, percentile, Row, table  # noqa: E402, I100
+from bench_bag import rows_bag  # noqa: E402, I100
+from bench_common import header, percentile, Row, table  # noqa: E402
 from bench_core import row_core, row_fleet, row_replay  # noqa: E402
 from bench_filters import row_filters  # noqa: E402
 from bench_live import LIVE_QOS_DEPTH, LIVE_RATES_HZ, row_live, row_startup  # noqa: E402
@@ -52,7 +58,7 @@ from bench_scale import rows_live_fleet, rows_scale  # noqa: E402
 
 __all__ = ['main', 'percentile', 'ROWS']
 
-ROWS = (1, 2, 3, 4, 5, 6, 7, 8)
+ROWS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
 
 
 def _parse(argv: List[str]) -> argparse.Namespace:
@@ -105,7 +111,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                5: lambda: row_startup(args.quick),
                6: lambda: row_filters(args.quick),
                7: lambda: rows_scale(args.quick),
-               8: lambda: rows_live_fleet(args.quick)}
+               8: lambda: rows_live_fleet(args.quick),
+               9: lambda: rows_bag(args.quick)}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()

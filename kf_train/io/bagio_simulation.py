@@ -25,8 +25,8 @@ for a path ending in ``.mcap`` the single MCAP file); an exception inside the
 
 from pathlib import Path
 import shutil
-import tempfile
 import struct
+import tempfile
 from typing import Dict, Optional, Tuple, Union
 
 from kf_train.io.bagio_layout import PatchTemplate

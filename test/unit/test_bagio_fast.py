@@ -20,8 +20,8 @@ def records(count):
     for k in range(count):
         # Times mostly increase but also step back, as interleaved topics may.
         stamp = 1_000 + 10 * k + rng.choice((0, 0, 0, -25, 3))
-        out.append((rng.randrange(len(TOPICS)), stamp, bytes(rng.randrange(256)
-                                                                for _ in range(rng.randrange(1, 400)))))
+        payload = bytes(rng.randrange(256) for _ in range(rng.randrange(1, 400)))
+        out.append((rng.randrange(len(TOPICS)), stamp, payload))
     return out
 
 

@@ -1,4 +1,4 @@
-"""``kf-train simulate`` and the node's live parameters: max_samples, publish_clock, min_subscribers."""
+"""``kf-train simulate`` and the simulator's live parameters (max_samples, publish_clock, ...)."""
 
 from pathlib import Path
 
