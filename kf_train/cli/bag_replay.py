@@ -47,7 +47,6 @@ from kf_train.ros import estimator_params, param_spec, session as estimator_sess
 import numpy as np
 
 NS_PER_S = 1_000_000_000
-NAN = float('nan')
 CSV_ROWS_PER_CHUNK = 4096
 
 
@@ -136,7 +135,7 @@ def _csv_values(step, update, diagonal: slice) -> list:
     row += step.P.ravel().tolist()[diagonal]
     row += step.predicted_x.tolist()
     row += step.predicted_P.ravel().tolist()[diagonal]
-    row.append(NAN if update is None else update.nis)
+    row.append(math.nan if update is None else update.nis)
     return row
 
 
