@@ -51,9 +51,10 @@ NS_PER_S = 1_000_000_000
 LISTED_TOPICS = 8
 # What the rosbags reader raises on broken storage; decoding adds SerdeError. A garbled
 # record length in an MCAP chunk overflows a seek (OverflowError) or a struct unpack
-# (struct.error), or trips one of rosbags' own asserts on the records it found.
+# (struct.error), or trips one of rosbags' own asserts on the records it found; a file
+# cut right after its magic makes rosbags call ord() on an empty read (TypeError).
 _STORAGE_ERRORS = (ReaderError, OSError, KeyError, ValueError, EOFError, IndexError,
-                   OverflowError, struct.error, AssertionError)
+                   OverflowError, struct.error, AssertionError, TypeError)
 
 
 class Measurement(NamedTuple):

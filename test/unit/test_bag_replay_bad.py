@@ -68,6 +68,12 @@ def bad_bag(tmp_path, storage, case):
         data = path.read_bytes()
         path.write_bytes(data[:int(len(data) * 0.9)])
         return bag
+    if case == 'cut-after-magic':
+        # MCAP: the 8 magic bytes and nothing else; sqlite3: the 16-byte header string.
+        bag = write_raw(tmp_path / 'bag', storage, '/measurement', POSE, pose_payloads(COUNT))
+        path = the_file(bag, storage)
+        path.write_bytes(path.read_bytes()[:8 if storage == 'mcap' else 16])
+        return bag
     if case == 'undecodable-message-late':
         return write_raw(tmp_path / 'bag', storage, '/measurement', POSE,
                          pose_payloads(COUNT, damaged_at=COUNT - 10))
@@ -78,6 +84,7 @@ BAD = {'missing-topic': ['no measurement topic', '/gps', POSE],
        'wrong-type': ['/measurement', POSE_STAMPED, 'expected ' + POSE],
        'not-a-bag': ['not a readable bag'],
        'truncated': ['truncated'],
+       'cut-after-magic': ['truncated'],
        'undecodable-message-late': [f'message {COUNT - 10} on /measurement does not decode']}
 
 
