@@ -29,7 +29,9 @@ ROWS = 150
                                                  (0.0, 200.0, 'decrease q')])
 def test_diagnostics_suggest_which_way_to_move_q(ros_context, executor, q_true, node_q, way):
     """The suggested q's interval holds the true q and the advice points the right way."""
+    # The train's KF without a gate (the defaults before issue 11): its suggested q.
     node = EstimatorNode(context=ros_context, parameter_overrides=[
+        Parameter('preset', value='train'), Parameter('gate_probability', value=1.0),
         Parameter('process_noise_density', value=node_q),
         Parameter('noise_suggestion_window', value=ROWS),
         Parameter('diagnostics_period_s', value=3600.0)])

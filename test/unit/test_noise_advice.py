@@ -33,7 +33,8 @@ class Clock:
 
 
 def session_fed(q_true, rows, *overrides, seed=3, scenario=None):
-    """Return (session, clock) after ``rows`` measurements of a random-force train at 10 Hz.
+    """
+    Return (session, clock) after ``rows`` measurements of a random-force train at 10 Hz.
 
     Preset train, gate off, unless ``overrides`` say otherwise.
     """
