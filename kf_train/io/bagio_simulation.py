@@ -9,7 +9,9 @@ the node publishes (:mod:`kf_train.ros.simulator_node`, kf_train/ros/messages.py
   entry 1e9, orientation identity;
 * ``ground_truth``: nav_msgs/msg/Odometry, position and velocity, variances 0;
 * ``control`` (scenarios with one): geometry_msgs/msg/AccelStamped (``accel.linear.x``)
-  or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``.
+  or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``;
+* ``ground_truth_accel`` (scenarios with a true acceleration: rail):
+  geometry_msgs/msg/AccelStamped, ``accel.linear.x`` [m/s²], frame ``child_frame_id``.
 
 Relative names are resolved in ``namespace``. The bag is written into a temporary
 directory beside the target and moved into place by :meth:`close` (a directory, or
@@ -64,7 +66,7 @@ class SimulationBag(AtomicBag):
     """A simulated run being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], control_name: Optional[str],
-                 namespace: str = ''):
+                 namespace: str = '', truth_acceleration: bool = False):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
         self.path = Path(path)
         self.single_file = self.path.suffix == '.mcap'
@@ -79,6 +81,8 @@ class SimulationBag(AtomicBag):
         topics = [('measurement', POSE), ('ground_truth', ODOMETRY)]
         if self.control_type is not None:
             topics.append(('control', self.control_type))
+        if truth_acceleration:
+            topics.append(('ground_truth_accel', ACCEL))
         try:
             self._writer = Writer(self._written, version=9, storage_plugin=StoragePlugin.MCAP)
             self._writer.open()
@@ -112,3 +116,9 @@ class SimulationBag(AtomicBag):
         """Write a control (the scenario's type)."""
         self.write('control', record_ns,
                    control_message(self.control_type, stamp_ns, frame_id, value))
+
+    def write_truth_accel(self, record_ns: int, stamp_ns: int, frame_id: str,
+                          acceleration_mps2: float) -> None:
+        """Write the true acceleration (AccelStamped, accel.linear.x)."""
+        self.write('ground_truth_accel', record_ns,
+                   control_message(ACCEL, stamp_ns, frame_id, acceleration_mps2))
