@@ -242,9 +242,8 @@ def regime_message(names: Sequence[str], probabilities):
     """Return the Float64MultiArray the estimator node publishes on regime_probabilities."""
     dimension = _T['std_msgs/msg/MultiArrayDimension'](
         label=','.join(names), size=len(names), stride=len(names))
-    return _T[MULTIARRAY](layout=_T['std_msgs/msg/MultiArrayLayout'](dim=[dimension],
-                                                                      data_offset=0),
-                          data=np.array(probabilities, dtype=np.float64))
+    layout = _T['std_msgs/msg/MultiArrayLayout'](dim=[dimension], data_offset=0)
+    return _T[MULTIARRAY](layout=layout, data=np.array(probabilities, dtype=np.float64))
 
 
 def _stamp_error(stamp_ns: int) -> ValueError:
