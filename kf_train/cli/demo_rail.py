@@ -11,11 +11,12 @@ future-stamp check holds, and takes its measurements reliably into a queue of
 :data:`QUEUE_DEPTH` (``qos_reliability``, ``qos_depth``: transport only), so that no
 sample is lost should it fall behind the faster run. A probe records every topic,
 the regime probabilities and ``/diagnostics`` included. Then the demo reports, after
-a 10-s warm-up, the RMSE of the estimator's 2-s predictions against the exact truth and the share of them whose
-2σ band holds it, next to a constant-velocity and a constant-acceleration Kalman
-filter each tuned in hindsight on this very run (:func:`kf_train.sim.tuned_baselines`);
-checks that what crossed DDS equals the offline core (:class:`StreamEstimator` fed the
-received measurements) and the seeded offline run; and draws ``rail.png``
+a 10-s warm-up, the RMSE of the estimator's 2-s predictions against the exact truth
+and the share of them whose 2σ band holds it, next to a constant-velocity and a
+constant-acceleration Kalman filter each tuned in hindsight on this very run
+(:func:`kf_train.sim.tuned_baselines`); checks that what crossed DDS equals the
+offline core (:class:`StreamEstimator` fed the received measurements) and the seeded
+offline run; and draws ``rail.png``
 (:mod:`kf_train.cli.rail_figure`). Outputs go to ``<output-dir>/rail``.
 """
 
