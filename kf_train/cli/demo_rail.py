@@ -32,7 +32,7 @@ from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
 from kf_train.ros import demo_nodes, messages
 from kf_train.ros.diagnostics import regime_names
 from kf_train.sim import (
-    RAIL_HORIZON_S, RAIL_WARMUP_S, rail_parameters, rail_run, rail_scenario, RailRun, Score,
+    RAIL_HORIZON_S, rail_parameters, rail_run, rail_scenario, RAIL_WARMUP_S, RailRun, Score,
     score_predictions, Track, tuned_baselines)
 import numpy as np
 
