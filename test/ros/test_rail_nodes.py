@@ -8,13 +8,14 @@ The rail scenario and the regime probabilities through the nodes (issue 11).
   puts them into ``/diagnostics``; presets without regimes have no such topic.
 """
 
+import os
 import time
 
 from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
 from kf_train.cli import main as kf_train_main
 from kf_train.io.bagio_simulation import measurement_message
 from kf_train.io.bagio_types import POSE, TYPESTORE
-from kf_train.ros import messages
+from kf_train.ros import launch_params, messages
 from kf_train.ros.estimator_node import EstimatorNode
 from kf_train.ros.simulator_node import SimulatorNode
 from kf_train.sim import make_stream, rail_scenario
@@ -28,6 +29,7 @@ from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from std_msgs.msg import Float64MultiArray
 
 NS = 1_000_000_000
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 _NODES = []
 
 
@@ -175,3 +177,17 @@ def test_presets_without_regimes_have_no_regime_topic(ros_context, executor):
     assert '/regime_probabilities' not in topics and '/estimate' in topics
     keys = [key for key, _ in node.session.diagnostics(time.time_ns()).values]
     assert not [key for key in keys if key.startswith('regime')]
+
+
+def test_the_launch_file_starts_both_nodes_with_scenario_rail(ros_context, executor):
+    """kf_train.launch.py scenario:=rail: the rail simulator, the rail preset (its name)."""
+    config = launch_params.load_params_file(os.path.join(REPO, 'config', 'kf_train.yaml'))
+    simulator_values = launch_params.simulator_parameters(config, '', 'rail', False)
+    estimator_values = launch_params.estimator_parameters(config, '', 'rail', False)
+    simulator = _add(executor, SimulatorNode(context=ros_context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in simulator_values.items()]))
+    estimator = _add(executor, EstimatorNode(context=ros_context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in estimator_values.items()]))
+    assert simulator.scenario == 'rail' and simulator.truth_accel_pub is not None
+    assert simulator.get_parameter('noise_std').value == 1.0
+    assert estimator.preset.name == 'rail' and estimator.regime_pub is not None
