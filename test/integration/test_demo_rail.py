@@ -80,9 +80,8 @@ def test_the_rail_series_report_and_figure(rail, tmp_path, preset):
     assert len(series.estimate_t_s) == rail.samples - series.rejected
     assert series.regime_names == (('stand', 'accelerate', 'cruise', 'brake')
                                    if preset == 'rail' else ())
-    tuned = {name: best for name, best in
-             demo_rail.tuned_baselines(rail.scenario, rail.run, cv_grid=(1.0, 3.0),
-                                       ca_grid=(0.03, 0.1)).items()}
+    tuned = demo_rail.tuned_baselines(rail.scenario, rail.run, cv_grid=(1.0, 3.0),
+                                      ca_grid=(0.03, 0.1))
     figure = demo_rail._draw(tmp_path, rail, series)
     assert figure and (tmp_path / 'rail.png').stat().st_size > 10_000
     report = demo_rail.format_rail_report(rail, series, settings, tuned, 7, figure)
