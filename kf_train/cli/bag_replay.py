@@ -43,8 +43,8 @@ from typing import Callable, Iterator, List, NamedTuple, Optional
 from kf_train.cli.replay import write_atomic
 from kf_train.estimator import StreamEstimator
 from kf_train.io import bagio, bagio_output
+from kf_train.ros import diagnostics as ros_diagnostics
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
-from kf_train.ros.diagnostics import regime_names
 
 NS_PER_S = 1_000_000_000
 CSV_ROWS_PER_CHUNK = 4096
@@ -165,7 +165,7 @@ def write_csv(run: BagRun, path: str, counts: dict) -> None:
 def write_bag(run: BagRun, path: str, counts: dict) -> None:
     """Replay into an MCAP bag at ``path`` (atomically)."""
     options = run.config.options
-    regimes = regime_names(StreamEstimator(run.config.settings))
+    regimes = ros_diagnostics.regime_names(StreamEstimator(run.config.settings))
     with bagio_output.OutputBag(path, frame_id=options.frame_id,
                                 child_frame_id=options.child_frame_id,
                                 regime_names=regimes) as out:

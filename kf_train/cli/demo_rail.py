@@ -29,8 +29,7 @@ from typing import Dict, NamedTuple, Optional
 
 from kf_train.cli import demo as seed_demo
 from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
-from kf_train.ros import demo_nodes, messages
-from kf_train.ros.diagnostics import regime_names
+from kf_train.ros import demo_nodes, diagnostics, messages
 from kf_train.sim import (
     RAIL_HORIZON_S, rail_parameters, rail_run, rail_scenario, RAIL_WARMUP_S, RailRun, Score,
     score_predictions, Track, tuned_baselines)
@@ -144,7 +143,7 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
                 f'rail: discovery timed out after {seed_demo.DISCOVERY_TIMEOUT_S:g} s '
                 f'(see the logs in {output_dir})')
         settings = seed_demo._estimator_settings(executor, probe)
-        has_regimes = bool(regime_names(StreamEstimator(settings)))
+        has_regimes = bool(diagnostics.regime_names(StreamEstimator(settings)))
         probe.subscribe_measurement()
         problem = demo_nodes.set_parameter(
             executor, probe, 'simulator', 'min_subscribers',
