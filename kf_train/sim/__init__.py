@@ -18,7 +18,8 @@ from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running
 from kf_train.sim.faults import Delivery, FAULT_STREAM, FaultInjector, FaultSettings
 from kf_train.sim.noise_simulation import white_noise_acceleration_scenario
 from kf_train.sim.rail import FAMILIES as RAIL_FAMILY_RANGES
-from kf_train.sim.rail import rail_run, rail_scenario, RailParameters, RailRun
+from kf_train.sim.rail import (
+    family_parameters, rail_run, rail_scenario, RailParameters, RailRun)
 from kf_train.sim.rail_baselines import PolynomialKF, tuned_baselines, TunedBaseline
 from kf_train.sim.rail_eval import HORIZON_S as RAIL_HORIZON_S
 from kf_train.sim.rail_eval import Score, Track, WARMUP_S as RAIL_WARMUP_S
@@ -42,7 +43,8 @@ __all__ = [
     'CarStream', 'CONTROL_NAMES',
     'cv_position_scenario', 'cv_position_velocity_scenario', 'DEFAULT_INITIAL_STATE',
     'DEFAULT_NOISE_STD_M', 'Delivery', 'extrapolate', 'FAULT_STREAM', 'FaultInjector',
-    'FaultSettings', 'make_stream', 'PRESET_SCENARIOS', 'range_bearing_scenario',
+    'FaultSettings', 'family_parameters', 'make_stream', 'PRESET_SCENARIOS',
+    'range_bearing_scenario',
     'raw_difference_velocity', 'ROBOT_SPEED_STD_MPS', 'robot_position_m', 'robot_scenario',
     'RobotStream', 'running_average', 'Scenario', 'scenario_for_preset', 'ScenarioSample',
     'SCENARIOS', 'train_scenario', 'TrainSample', 'TrainSeries', 'TrainSimulation',
