@@ -293,7 +293,8 @@ def format_rail_report(rail: RailPlan, series: RailSeries, settings, tuned, doma
         f'the start and at t = {arrival:.1f} s (dwell until {departure:.1f} s)',
         f'estimator: its defaults (preset {settings.preset}, filter {settings.filter}, '
         f'gate_probability {settings.gate_probability:g}, horizon {settings.horizon_s:g} s): '
-        f'{len(series.estimate_t_s)} estimates, {series.rejected} measurements rejected',
+        f'{len(series.estimate_t_s)} estimates, {series.rejected} '
+        f'measurement{"" if series.rejected == 1 else "s"} rejected by the gate',
         '',
         f'2-s prediction after a {RAIL_WARMUP_S:g}-s warm-up, against the exact truth '
         f'({ours.count} predictions):',
