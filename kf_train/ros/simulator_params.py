@@ -36,12 +36,15 @@ _G_LIVE = 'changeable at runtime'
 _G_FAULTS = 'fault injection: all off by default, applied from the next sample'
 _G_RAIL = 'scenario rail: fixed at start-up (restart to change)'
 _DRAWN = " 0 (default): drawn from rail_family's range by seed."
-_DRAWN_PAIR = " [] (default): rail_family's range."
+_DRAWN_PAIR = " Max 0 (default): rail_family's range."
 RAIL_PARAMETERS = {
     'rail_accel_mps2': 'accel_mps2', 'rail_brake_mps2': 'brake_mps2',
-    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps',
-    'rail_station_spacing_m': 'station_spacing_m', 'rail_dwell_s': 'dwell_s'}
-"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0 or []: drawn)."""
+    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps'}
+"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0: drawn)."""
+RAIL_RANGE_PARAMETERS = {
+    'station_spacing_m': ('rail_station_spacing_min_m', 'rail_station_spacing_max_m'),
+    'dwell_s': ('rail_dwell_min_s', 'rail_dwell_max_s')}
+"""Keyword of kf_train.sim.rail_parameters -> its (min, max) parameters (max 0: drawn)."""
 
 
 def _double(name, default, description, range_, unit='', **more) -> ParamSpec:
@@ -49,13 +52,10 @@ def _double(name, default, description, range_, unit='', **more) -> ParamSpec:
     return ParamSpec(name, 'double', default, description, range=range_, unit=unit, **more)
 
 
-def _rail(name, default, description, range_=None, unit='', kind='double') -> ParamSpec:
-    """Return the spec of a rail run parameter (fixed at start-up)."""
-    return ParamSpec(name, kind, default, 'rail: ' + description + ' ' + _FIXED,
-                     range=range_, unit=unit,
-                     live=False, group=_G_RAIL,
-                     constraints="[min, max], or [] for the family's range"
-                     if kind == 'double_array' else '')
+def _rail(name, default, description, range_, unit) -> ParamSpec:
+    """Return the spec of a rail run parameter (a double, fixed at start-up)."""
+    return ParamSpec(name, 'double', default, 'rail: ' + description + ' ' + _FIXED,
+                     range=range_, unit=unit, live=False, group=_G_RAIL)
 
 
 def _fault(name, default, description, range_, unit='') -> ParamSpec:
@@ -106,10 +106,14 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
           (0.0, 1.0), 'm/s³'),
     _rail('rail_line_speed_mps', 0.0, 'cruising speed between stations [m/s] (10-45).'
           + _DRAWN, (0.0, 45.0), 'm/s'),
-    _rail('rail_station_spacing_m', [], 'range [min, max] of the station-to-station '
-          'distances [m] (min >= 100).' + _DRAWN_PAIR, unit='m', kind='double_array'),
-    _rail('rail_dwell_s', [], 'range [min, max] of the dwell times at stations [s] '
-          '(0-3600).' + _DRAWN_PAIR, unit='s', kind='double_array'),
+    _rail('rail_station_spacing_min_m', 0.0, 'shortest station-to-station distance [m] '
+          '(>= 100; with rail_station_spacing_max_m).', (0.0, 1e6), 'm'),
+    _rail('rail_station_spacing_max_m', 0.0, 'longest station-to-station distance [m] (>= '
+          'rail_station_spacing_min_m).' + _DRAWN_PAIR, (0.0, 1e6), 'm'),
+    _rail('rail_dwell_min_s', 0.0, 'shortest dwell at a station [s] (with rail_dwell_max_s).',
+          (0.0, 3600.0), 's'),
+    _rail('rail_dwell_max_s', 0.0, 'longest dwell at a station [s] (>= rail_dwell_min_s).'
+          + _DRAWN_PAIR, (0.0, 3600.0), 's'),
     _double('noise_std', None,
             'Standard deviation of the position measurement noise [m]; its square is '
             'published as the measurement variance. ' + _SCENARIOS, (0.0, 1000.0), 'm',
@@ -207,14 +211,20 @@ def simulator_config(values: Mapping[str, Any]) -> SimulatorConfig:
 def rail_options(values: Mapping[str, Any]) -> Dict[str, Any]:
     """Return make_stream's ``rail`` options from the rail_* values; ParameterError if bad."""
     options = {'family': values['rail_family']}
+    names = dict(RAIL_PARAMETERS)
     for name, keyword in RAIL_PARAMETERS.items():
-        value = values[name]
-        if value:  # 0 and []: the family draws it
-            options[keyword] = value
+        if values[name]:  # 0: the family draws it
+            options[keyword] = values[name]
+    for keyword, (low, high) in RAIL_RANGE_PARAMETERS.items():
+        names[f'{low}/{high}'] = keyword
+        if values[high]:  # max 0: the family's range
+            options[keyword] = (values[low], values[high])
+        elif values[low]:
+            raise ParameterError(f"{low} needs {high} too ({high} 0: the family's range)")
     try:  # the ranges of one run (e.g. min <= max, jerk >= 0.3), checked at once
         rail_parameters(seed=0, **options)
     except ValueError as error:
-        name = next((n for n, k in RAIL_PARAMETERS.items() if k in str(error)), 'rail')
+        name = next((n for n, k in names.items() if k in str(error)), 'rail')
         raise ParameterError(f'{name}: {error}') from None
     return options
 

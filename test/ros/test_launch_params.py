@@ -91,7 +91,8 @@ def test_choose_keeps_derived_values_for_the_files_own_choice():
     table = estimator_params.PARAMETERS
     values = {'initial_state': [1.0, 2.0], 'horizon_s': 3.0, 'history_s': 0.5}
     assert launch_params.choose(table, values, '') == values
-    assert launch_params.choose(table, values, 'train') == dict(values, preset='train')
+    default = table.spec('preset').default
+    assert launch_params.choose(table, values, default) == dict(values, preset=default)
     changed = launch_params.choose(table, dict(values, preset='car'), 'robot')
     assert changed == {'history_s': 0.5, 'preset': 'robot'}
     assert 'initial_state' in values  # the input is not changed

@@ -60,7 +60,8 @@ def test_the_simulator_table_is_the_stream_the_faults_and_the_options():
     assert set(simulator_params.PARAMETERS.names) == (
         {'scenario', 'rate_hz', 'seed', 'noise_std', 'initial_position', 'true_velocity',
          'acceleration_mps2', 'speed_noise_std', 'real_time_factor', 'rail_family'}
-        | set(simulator_params.RAIL_PARAMETERS) | faults | set(SimulatorOptions._fields))
+        | set(simulator_params.RAIL_PARAMETERS) | faults | set(SimulatorOptions._fields)
+        | {name for pair in simulator_params.RAIL_RANGE_PARAMETERS.values() for name in pair})
     assert config.faults == FaultSettings()
     assert config.stream == {'noise_std_m': 1.0, 'initial_position_m': 0.0,
                              'velocity_mps': 10.0, 'acceleration_mps2': 1.0,
@@ -327,10 +328,12 @@ def test_the_simulators_configuration_offline():
             ("child_frame_id:=''", 'invalid parameter: child_frame_id must not be empty'),
             ('rail_jerk_mps3:=0.1', 'invalid parameter: rail_jerk_mps3: jerk_mps3 must be in '
                                     '[0.3, 1], got 0.1'),
-            ('rail_dwell_s:=[30.0, 10.0]', 'invalid parameter: rail_dwell_s: dwell_s must '
-                                           'have min <= max, got (30.0, 10.0)'),
-            ('rail_dwell_s:=[1.0]', 'invalid parameter: rail_dwell_s: dwell_s must be '
-                                    '[min, max], got [1.0]')]:
+            ('rail_dwell_min_s:=30.0', 'invalid parameter: rail_dwell_min_s needs '
+                                       'rail_dwell_max_s too (rail_dwell_max_s 0: the '
+                                       "family's range)"),
+            ('rail_station_spacing_max_m:=900.0',
+             'invalid parameter: rail_station_spacing_min_m/rail_station_spacing_max_m: '
+             'station_spacing_m[0] must be in [100, 1e+06], got 0.0')]:
         with pytest.raises(ParameterError) as raised:
             load_simulator_config(overrides=['scenario:=rail', assignment])
         assert str(raised.value) == line
@@ -343,10 +346,11 @@ def test_the_rail_scenario_takes_its_values_or_draws_them():
     assert drawn.stream['noise_std_m'] == 1.0 and drawn.stream['initial_position_m'] == 0.0
     given = load_simulator_config(overrides=[
         'scenario:=rail', 'rail_family:=regional', 'rail_accel_mps2:=0.5',
-        'rail_line_speed_mps:=30.0', 'rail_station_spacing_m:=[2000.0, 3000.0]'])
+        'rail_line_speed_mps:=30.0', 'rail_station_spacing_min_m:=2000.0',
+        'rail_station_spacing_max_m:=3000.0'])
     assert given.stream['rail'] == {'family': 'regional', 'accel_mps2': 0.5,
                                     'line_speed_mps': 30.0,
-                                    'station_spacing_m': [2000.0, 3000.0]}
+                                    'station_spacing_m': (2000.0, 3000.0)}
     assert 'rail' not in load_simulator_config().stream
 
 
