@@ -50,11 +50,17 @@ def _add(executor, node):
 
 def test_the_rail_simulator_publishes_the_offline_run_and_its_acceleration(
         ros_context, executor):
-    """Measurements, truth and true acceleration are the offline stream's, to the bit."""
+    """Measurements, truth and true acceleration are the offline stream's, to the bit.
+
+    The rail_* parameters reach the run: a 1-2 s dwell at the start, so the train is off
+    within the 40 samples.
+    """
     samples = 40
     simulator = _add(executor, SimulatorNode(context=ros_context, parameter_overrides=[
         Parameter('scenario', value='rail'), Parameter('seed', value=5),
         Parameter('rail_family', value='regional'), Parameter('rate_hz', value=10.0),
+        Parameter('rail_line_speed_mps', value=30.0), Parameter('rail_dwell_min_s', value=1.0),
+        Parameter('rail_dwell_max_s', value=2.0),
         Parameter('real_time_factor', value=20.0), Parameter('max_samples', value=samples),
         Parameter('min_subscribers', value=1)]))
     probe = _add(executor, rclpy.create_node('probe', context=ros_context))
@@ -65,7 +71,9 @@ def test_the_rail_simulator_publishes_the_offline_run_and_its_acceleration(
     assert spin_until(executor, lambda: simulator.done.done(), 30.0)
     assert spin_until(executor, lambda: all(len(m) == samples for m in received.values()),
                       5.0)
-    stream = make_stream('rail', 10.0, 5, rail={'family': 'regional'})
+    stream = make_stream('rail', 10.0, 5, rail={'family': 'regional', 'line_speed_mps': 30.0,
+                                                'dwell_s': (1.0, 2.0)})
+    assert stream.parameters.line_speed_mps == 30.0 and stream.parameters.dwell_s == (1.0, 2.0)
     expected = [stream.next_sample() for _ in range(samples)]
     truth = [messages.from_odometry_msg(m) for m in received['ground_truth']]
     accel = received['ground_truth_accel']
@@ -76,6 +84,7 @@ def test_the_rail_simulator_publishes_the_offline_run_and_its_acceleration(
         == [s.measured_position_m for s in expected]
     assert [messages.stamp_to_ns(m.header.stamp) for m in accel] == [t.stamp_ns for t in truth]
     assert {m.header.frame_id for m in accel} == {'base_link'}
+    assert max(m.accel.linear.x for m in accel) > 0.0  # it left the station
     # Stamps stay 1/rate_hz apart however fast they went out.
     assert set(np.diff([t.stamp_ns for t in truth])) == {NS // 10}
 
