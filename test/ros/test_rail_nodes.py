@@ -50,7 +50,8 @@ def _add(executor, node):
 
 def test_the_rail_simulator_publishes_the_offline_run_and_its_acceleration(
         ros_context, executor):
-    """Measurements, truth and true acceleration are the offline stream's, to the bit.
+    """
+    Measurements, truth and true acceleration are the offline stream's, to the bit.
 
     The rail_* parameters reach the run: a 1-2 s dwell at the start, so the train is off
     within the 40 samples.
