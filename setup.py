@@ -49,6 +49,8 @@ setup(
         'dask': ['dask[dataframe]', 'distributed', 'polars'],
         # kf-train tune's optimiser (kf_train.cli.noise_fit); never the nodes'
         'tune': ['scipy'],
+        # a progress bar for long offline replays on a terminal: kf_train.cli.progress
+        'progress': ['tqdm'],
     },
     zip_safe=True,
     maintainer='kf_train maintainers',

@@ -118,33 +118,52 @@ def _memory_rows(directory: str, quick: bool) -> List[Row]:
     out = os.path.join(directory, 'memory.csv')
     run = _measured(_kf_train() + ['replay', '--preset', 'train', csv, '-o', out, '--engine',
                                    'memory'])
+    # More rows than one block (65 536): the in-memory engine must still write the
+    # stream's bytes (both filter in the same blocks).
+    same = _digest(out) == digests['auto', sizes[0]]
     os.unlink(out)
     per_row = run['rss_mib'] * 2 ** 20 / sizes[0]
     rows.append(('7', 'replay memory, train preset', f'in memory (--engine memory), '
-                 f'{sizes[0]:,} rows', f'peak RSS {run["rss_mib"]:.0f} MiB',
-                 f'{per_row:.0f} B/row', '-'))
+                 f'{sizes[0]:,} rows', f'peak RSS {run["rss_mib"]:.0f} MiB; '
+                 f'{"same bytes as the stream" if same else "BYTES DIFFER from the stream"}',
+                 f'{per_row:.0f} B/row',
+                 f'stream = memory byte for byte: {"met" if same else "MISSED"}'))
     return rows
 
 
 def _throughput_rows(directory: str, quick: bool) -> List[Row]:
-    """CSV to CSV and Parquet to Parquet, train preset, 9 output columns."""
-    size = 10 ** 5 if quick else 10 ** 6
+    """
+    CSV to CSV and Parquet to Parquet, train preset, 9 output columns, at two sizes.
+
+    The target is wall-clock rows/s with the process start-up (≈0.5 s of imports)
+    included; the larger size shows the rate once start-up is amortised. The ratio is
+    rows/s over the target (≥1.00× is met); the CPU-time rate says what the code does
+    on a machine whose load steals wall time.
+    """
     rows = []
-    csv, parquet = _train_log(directory, size)
-    for label, source, target, extra, goal in (
-            ('CSV to CSV, polars', csv, 'o.csv', [], 1e6),
-            ('CSV to CSV, built-in (no extra)', csv, 'o.csv', ['--codec', 'builtin'], None),
-            ('Parquet to Parquet', parquet, 'o.parquet', [], 5e6)):
-        out = os.path.join(directory, target)
-        run = _measured(_kf_train() + ['replay', '--preset', 'train', source, '-o', out]
-                        + extra)
-        os.unlink(out)
-        target_text = '-' if goal is None else (
-            f'≥{goal:,.0f} rows/s: {"met" if size / run["wall"] >= goal else "MISSED"}')
-        rows.append(('7', 'replay throughput, train preset, 9 output columns',
-                     f'{label}, {size:,} rows, process start-up included',
-                     f'{_rate(size, run["wall"])} wall; {_rate(size, run["cpu"])} of CPU time',
-                     f'{run["cpu"] / run["wall"]:.2f} CPUs busy', target_text))
+    for size in ((10 ** 5,) if quick else (10 ** 6, 10 ** 7)):
+        csv, parquet = _train_log(directory, size)
+        for label, source, target, extra, goal in (
+                ('CSV to CSV, polars', csv, 'o.csv', [], 1e6),
+                ('CSV to CSV, built-in (no extra)', csv, 'o.csv', ['--codec', 'builtin'],
+                 None),
+                ('Parquet to Parquet', parquet, 'o.parquet', [], 5e6)):
+            if goal is None and size > 10 ** 6:
+                continue
+            out = os.path.join(directory, target)
+            run = _measured(_kf_train() + ['replay', '--preset', 'train', source, '-o', out]
+                            + extra)
+            os.unlink(out)
+            rate = size / run['wall']
+            target_text = '-' if goal is None else (
+                f'≥{goal:,.0f} rows/s: {rate / goal:.2f}× '
+                f'{"met" if rate >= goal else "MISSED"}')
+            rows.append(('7', 'replay throughput, train preset, 9 output columns',
+                         f'{label}, {size:,} rows, process start-up included',
+                         f'{_rate(size, run["wall"])} wall; {_rate(size, run["cpu"])} of CPU '
+                         'time', f'{run["cpu"] / run["wall"]:.2f} CPUs busy', target_text))
+        os.unlink(csv)
+        os.unlink(parquet)
     return rows
 
 

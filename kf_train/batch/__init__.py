@@ -41,13 +41,13 @@ from kf_train.batch.series import (
     MAX_ABS_TIME_S, run_filter_series, run_series, SeriesError, SeriesResult, time_steps_s)
 from kf_train.batch.smoother import (
     rts_smooth, smooth_series, SmootherResult, VECTORISED_MAX_STATES)
-from kf_train.batch.stream import filter_table, StreamingReplay
+from kf_train.batch.stream import filter_table, GapsFound, StreamingReplay
 
 __all__ = [
     'RailSeriesFilter',
     'affine_recursion', 'bank_time_steps', 'ConsistencyReport', 'CONVERGED_ULPS',
     'DEFAULT_BLOCK_ROWS', 'DEFAULT_CHUNK_SIZE', 'Estimates', 'filter_partition',
-    'filter_table', 'FleetState', 'group_rows', 'Groups', 'Innovations',
+    'filter_table', 'FleetState', 'GapsFound', 'group_rows', 'Groups', 'Innovations',
     'is_constant_velocity', 'LikelihoodProblem', 'LOCKSTEP_STEP_S', 'make_segment',
     'MAX_ABS_TIME_S', 'measured_states', 'nis_consistency', 'NoiseParameterisation',
     'NoiseSetting', 'NoiseSuggestion', 'noisy_preset', 'output_header', 'OutputBlock',

@@ -34,12 +34,46 @@ def _chunked(e, N: int, C: int, nc: int):
 def _carry(M_last: list, y_last: list, x0: np.ndarray, nc: int) -> np.ndarray:
     """Return each chunk's start state: s_{c+1} = M_c s_c + y_c, in plain floats."""
     d = len(x0)
+    if d == 2:
+        return _carry_2(M_last, y_last, x0)
+    if d == 4:
+        return _carry_4(M_last, y_last, x0)
     starts = np.empty((nc, d))
     s = [float(v) for v in x0]
     for c in range(nc):
         starts[c] = s
         s = [sum(M_last[c][i][k] * s[k] for k in range(d)) + y_last[c][i] for i in range(d)]
     return starts
+
+
+def _carry_2(M_last: list, y_last: list, x0: np.ndarray) -> np.ndarray:
+    """
+    _carry for two states, unrolled: the same operations in the same order.
+
+    sum(M[i][k] * s[k] for k) + y[i] is ((0 + M[i][0] s0) + M[i][1] s1) + y[i], and
+    0 + a is a exactly, so these bits are _carry's.
+    """
+    s0, s1 = float(x0[0]), float(x0[1])
+    starts = []
+    append = starts.append
+    for ((m00, m01), (m10, m11)), (y0, y1) in zip(M_last, y_last):
+        append((s0, s1))
+        s0, s1 = m00 * s0 + m01 * s1 + y0, m10 * s0 + m11 * s1 + y1
+    return np.array(starts, dtype=float).reshape(len(starts), 2)
+
+
+def _carry_4(M_last: list, y_last: list, x0: np.ndarray) -> np.ndarray:
+    """_carry for four states (a 2x2 information matrix), unrolled as _carry_2."""
+    s0, s1, s2, s3 = (float(v) for v in x0)
+    starts = []
+    append = starts.append
+    for (r0, r1, r2, r3), (y0, y1, y2, y3) in zip(M_last, y_last):
+        append((s0, s1, s2, s3))
+        s0, s1, s2, s3 = (r0[0] * s0 + r0[1] * s1 + r0[2] * s2 + r0[3] * s3 + y0,
+                          r1[0] * s0 + r1[1] * s1 + r1[2] * s2 + r1[3] * s3 + y1,
+                          r2[0] * s0 + r2[1] * s1 + r2[2] * s2 + r2[3] * s3 + y2,
+                          r3[0] * s0 + r3[1] * s1 + r3[2] * s2 + r3[3] * s3 + y3)
+    return np.array(starts, dtype=float).reshape(len(starts), 4)
 
 
 def affine_recursion(A, b, x0) -> np.ndarray:

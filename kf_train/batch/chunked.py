@@ -32,10 +32,13 @@ from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch.bank import _run_together, _split_objects, group_rows
 from kf_train.batch.linear import run_linear_series
-from kf_train.batch.series import filter_rows, MAX_ABS_TIME_S, run_series, SeriesError
+from kf_train.batch.series import (
+    filter_rows, MAX_ABS_TIME_S, run_series, SeriesError, without_gaps)
 from kf_train.filters import as_covariance, as_finite_array, as_vector, NS_PER_S
 import numpy as np
 
+# The last output column of an input with gaps: 1.0 updated, 0.0 predicted only.
+UPDATED_COLUMN = 'updated'
 # Rows filtered together: big enough for the vectorised paths to run at full speed,
 # small enough that a block's work arrays stay far below the memory budget.
 DEFAULT_BLOCK_ROWS = 65536
@@ -66,12 +69,15 @@ class Rows(NamedTuple):
     u: Optional[np.ndarray]
     codes: Optional[np.ndarray]
     """Each row's object (an index into the stream's labels), or None: one object."""
+    missing: Optional[np.ndarray] = None
+    """Rows without a measurement (True: predicted, not updated; z ignored), or None."""
 
     def take(self, start: int, stop: int) -> 'Rows':
         """Return rows [start, stop)."""
         cut = slice(start, stop)
         return Rows(self.t[cut], self.z[cut], None if self.u is None else self.u[cut],
-                    None if self.codes is None else self.codes[cut])
+                    None if self.codes is None else self.codes[cut],
+                    None if self.missing is None else self.missing[cut])
 
     @staticmethod
     def join(parts: Sequence['Rows']) -> 'Rows':
@@ -79,9 +85,14 @@ class Rows(NamedTuple):
         if len(parts) == 1:
             return parts[0]
         cat = np.concatenate
+        missing = None
+        if any(p.missing is not None for p in parts):
+            missing = cat([np.zeros(p.t.shape[0], dtype=bool) if p.missing is None
+                           else p.missing for p in parts])
         return Rows(cat([p.t for p in parts]), cat([p.z for p in parts]),
                     None if parts[0].u is None else cat([p.u for p in parts]),
-                    None if parts[0].codes is None else cat([p.codes for p in parts]))
+                    None if parts[0].codes is None else cat([p.codes for p in parts]),
+                    missing)
 
 
 class Estimates(NamedTuple):
@@ -95,6 +106,8 @@ class Estimates(NamedTuple):
     F: np.ndarray
     predicted_x: Optional[np.ndarray]
     predicted_P: Optional[np.ndarray]
+    updated: Optional[np.ndarray] = None
+    """1.0 where the row was updated, 0.0 where it had no measurement (a stream with gaps)."""
 
 
 class OutputBlock(NamedTuple):
@@ -115,15 +128,20 @@ def resolve_horizon(preset, horizon_s) -> Optional[float]:
     return horizon_s or None
 
 
-def output_header(preset, horizon: Optional[float], smooth: bool) -> List[str]:
-    """Return the output columns after the id: t, states, variances, predicted, smoothed."""
+def output_header(preset, horizon: Optional[float], smooth: bool,
+                  gaps: bool = False) -> List[str]:
+    """
+    Return the output columns after the id: t, states, variances, predicted, smoothed.
+
+    With ``gaps`` (an input with rows without a measurement) a last column ``updated``.
+    """
     names = preset.state_names
     header = ['t']
     prefixes = [''] + (['predicted_'] if horizon else []) + (['smoothed_'] if smooth else [])
     for prefix in prefixes:
         header += [prefix + name for name in names]
         header += ['var_' + prefix + name for name in names]
-    return header
+    return header + ([UPDATED_COLUMN] if gaps else [])
 
 
 def estimate_columns(est: Estimates, smoothed=None) -> List[np.ndarray]:
@@ -138,6 +156,8 @@ def estimate_columns(est: Estimates, smoothed=None) -> List[np.ndarray]:
         n = x.shape[1]
         columns += [x[:, i] for i in range(n)]
         columns += [P[:, i, i] if P.ndim == 3 else P[:, i] for i in range(n)]
+    if est.updated is not None:
+        columns.append(est.updated)
     return columns
 
 
@@ -236,13 +256,16 @@ class ObjectStates:
 def _as_estimates(result) -> Estimates:
     """Return a SeriesResult's fields as Estimates."""
     return Estimates(result.t_s, result.x, result.P, result.x_prior, result.P_prior,
-                     np.asarray(result.F), result.predicted_x, result.predicted_P)
+                     None if result.F is None else np.asarray(result.F), result.predicted_x,
+                     result.predicted_P)
 
 
 def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
-                    t: np.ndarray) -> Estimates:
+                    t: np.ndarray, missing=None) -> Estimates:
     """Predict and update ``filt`` row by row from its current state (no reset)."""
-    out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon)
+    z, missing = without_gaps(z, missing)
+    out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon,
+                                                                 missing)
     return Estimates(t, out_x, out_P, prior_x, prior_P, filt.preset.dynamics.F_batch(dt),
                      pred_x, pred_P)
 
@@ -250,10 +273,15 @@ def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
 class BlockFilter:
     """Filter one block of rows from the objects' carried states (the in-memory runners)."""
 
-    def __init__(self, preset, horizon: Optional[float], states: ObjectStates):
-        """Use ``preset`` (and ``states.filt`` when given) with this horizon."""
+    def __init__(self, preset, horizon: Optional[float], states: ObjectStates,
+                 priors: bool = True):
+        """
+        Use ``preset`` (and ``states.filt`` when given) with this horizon.
+
+        ``priors`` False: the estimates need not hold the priors and F (no smoother).
+        """
         self.preset, self.horizon, self.states = preset, horizon, states
-        self.filt = states.filt
+        self.filt, self.priors = states.filt, priors
 
     def run(self, rows: Rows, first_row: int) -> Estimates:
         """Return the block's estimates; the states move to its last rows."""
@@ -264,37 +292,47 @@ class BlockFilter:
         states.grow(int(codes.max(initial=-1)) + 1)
         t_ns = check_block_times(rows.t, first_row)
         dt = states.time_steps(rows.t, t_ns, codes, first_row)
+        missing = rows.missing
+        if missing is not None and not missing.any():
+            missing = None
         try:
             if rows.codes is None:
-                est = self._one(rows.t, dt, z, u)
+                est = self._one(rows.t, dt, z, u, missing)
             else:
-                est = self._bank(rows.t, dt, z, u, codes)
+                est = self._bank(rows.t, dt, z, u, codes, missing)
         except SeriesError as error:
             raise RowError(first_row + error.row, error.reason) from None
         states.remember(codes, rows.t, t_ns, first_row, est)
         return est
 
-    def _one(self, t, dt, z, u) -> Estimates:
+    def _one(self, t, dt, z, u, missing=None) -> Estimates:
         """Filter a block of one object's rows."""
-        t0, x0, P0 = self.states.start(0)
         if self.filt is not None:
-            return self._filter_rows(0, dt, z, u, t)
-        runner = run_linear_series if self.preset.linear else run_series
-        return _as_estimates(runner(self.preset, t, z, u, t0_s=t0, horizon_s=self.horizon or 0.0,
-                                    x0=x0, P0=P0))
+            return self._filter_rows(0, dt, z, u, t, missing)
+        return self._series(0, t, z, u, missing, self.priors)
 
-    def _filter_rows(self, obj: int, dt, z, u, t) -> Estimates:
+    def _series(self, obj: int, t, z, u, missing, priors: bool = True) -> Estimates:
+        """Run the preset's series runner over one object's rows from its carried state."""
+        t0, x0, P0 = self.states.start(obj)
+        options = {'t0_s': t0, 'horizon_s': self.horizon or 0.0, 'x0': x0, 'P0': P0,
+                   'missing': missing}
+        if self.preset.linear:
+            return _as_estimates(run_linear_series(self.preset, t, z, u, priors=priors,
+                                                   **options))
+        return _as_estimates(run_series(self.preset, t, z, u, **options))
+
+    def _filter_rows(self, obj: int, dt, z, u, t, missing=None) -> Estimates:
         """Run ``filt`` over one object's rows, from its snapshot (or a fresh reset)."""
         states = self.states
         if obj in states.snapshots:
             self.filt.restore(states.snapshots[obj])
         else:
             self.filt.reset(states.x0, states.P0)
-        est = run_filter_rows(self.filt, dt, z, u, self.horizon, t)
+        est = run_filter_rows(self.filt, dt, z, u, self.horizon, t, missing)
         states.snapshots[obj] = self.filt.snapshot()
         return est
 
-    def _bank(self, t, dt, z, u, codes) -> Estimates:
+    def _bank(self, t, dt, z, u, codes, missing=None) -> Estimates:
         """Filter a block of several objects' rows (as run_bank, from carried states)."""
         N, n = t.shape[0], self.preset.dim_x
         objects, local = np.unique(codes, return_inverse=True)
@@ -305,6 +343,11 @@ class BlockFilter:
         alone = np.arange(objects.shape[0])
         if self.filt is None and self.preset.linear:
             alone, together = _split_objects(groups)      # the bank's own cost model
+            if missing is not None and together.size:     # objects with gaps: alone
+                gappy = np.zeros(objects.shape[0], dtype=bool)
+                gappy[local.reshape(-1)[missing]] = True
+                alone = np.sort(np.concatenate([alone, together[gappy[together]]]))
+                together = together[~gappy[together]]
             if together.size:
                 starts = [self.states.start(int(objects[k])) for k in together]
                 x0 = np.stack([start[1] for start in starts], axis=1)
@@ -316,7 +359,8 @@ class BlockFilter:
             rows = groups.rows(k)
             try:
                 est = self._object_rows(int(objects[k]), t[rows], dt[rows], z[rows],
-                                        None if u is None else u[rows])
+                                        None if u is None else u[rows],
+                                        None if missing is None else missing[rows])
             except SeriesError as error:
                 raise SeriesError(int(rows[error.row]), error.reason) from None
             for array, value in zip(out, est[1:5] + est[6:]):
@@ -324,11 +368,8 @@ class BlockFilter:
                     array[rows] = value
         return Estimates(t, *out[:4], self.preset.dynamics.F_batch(dt), *out[4:])
 
-    def _object_rows(self, obj: int, t, dt, z, u) -> Estimates:
+    def _object_rows(self, obj: int, t, dt, z, u, missing=None) -> Estimates:
         """Filter one object's rows of a block alone."""
         if self.filt is not None:
-            return self._filter_rows(obj, dt, z, u, t)
-        t0, x0, P0 = self.states.start(obj)
-        runner = run_linear_series if self.preset.linear else run_series
-        return _as_estimates(runner(self.preset, t, z, u, t0_s=t0,
-                                    horizon_s=self.horizon or 0.0, x0=x0, P0=P0))
+            return self._filter_rows(obj, dt, z, u, t, missing)
+        return self._series(obj, t, z, u, missing)

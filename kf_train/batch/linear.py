@@ -33,8 +33,9 @@ def _converged(P_new: np.ndarray, P_old: np.ndarray) -> bool:
     return bool(np.all(np.abs(P_new - P_old) <= CONVERGED_ULPS * np.finfo(float).eps * scale))
 
 
-def _covariances_2x1(F_u, Q_u, inv, H, R, P0, N, steady):
-    """Return P_post for 2 states and 1 measurement, in plain floats."""
+def _covariances_2x1(F_u, Q_u, inv, H, R, P0, N, steady, missing=None):
+    """Return P_post for 2 states and 1 measurement, in plain floats (``missing``: no update)."""
+    gaps = set() if missing is None else set(np.flatnonzero(missing).tolist())
     rows = zip(*(M_u[:, i, j][inv].tolist() for M_u, i, j in (
         (F_u, 0, 0), (F_u, 0, 1), (F_u, 1, 0), (F_u, 1, 1),
         (Q_u, 0, 0), (Q_u, 0, 1), (Q_u, 1, 1))))
@@ -49,6 +50,10 @@ def _covariances_2x1(F_u, Q_u, inv, H, R, P0, N, steady):
         m00 = a * f00 + b * f01 + q00                            # P⁻ = F P Fᵀ + Q
         m01 = 0.5 * ((a * f10 + b * f11) + (c * f00 + d * f01)) + q01
         m11 = c * f10 + d * f11 + q11
+        if k in gaps:                                            # no measurement: P = P⁻
+            out.append((m00, m01, m11))
+            p00, p01, p11 = m00, m01, m11
+            continue
         g0, g1 = m00 * h0 + m01 * h1, m01 * h0 + m11 * h1        # P⁻ Hᵀ
         s = h0 * g0 + h1 * g1 + r                                # S = H P⁻ Hᵀ + R
         k0, k1 = g0 / s, g1 / s                                  # K = P⁻ Hᵀ / S
@@ -69,8 +74,9 @@ def _covariances_2x1(F_u, Q_u, inv, H, R, P0, N, steady):
     return [[out[:, 0].copy(), out[:, 1].copy()], [out[:, 1].copy(), out[:, 2].copy()]]
 
 
-def _covariances_1x1(F_u, Q_u, inv, H, R, P0, N, steady):
-    """Return P_post for 1 state and 1 measurement, in plain floats."""
+def _covariances_1x1(F_u, Q_u, inv, H, R, P0, N, steady, missing=None):
+    """Return P_post for 1 state and 1 measurement, in plain floats (``missing``: no update)."""
+    gaps = set() if missing is None else set(np.flatnonzero(missing).tolist())
     rows = zip(F_u[:, 0, 0][inv].tolist(), Q_u[:, 0, 0][inv].tolist())
     h, r = float(H[0, 0]), float(R[0, 0])
     tol = CONVERGED_ULPS * float(np.finfo(float).eps)
@@ -78,6 +84,10 @@ def _covariances_1x1(F_u, Q_u, inv, H, R, P0, N, steady):
     out = []
     for k, (f, q) in enumerate(rows):
         m = f * p * f + q                      # P⁻ = F P F + Q
+        if k in gaps:                          # no measurement: P = P⁻
+            out.append(m)
+            p = m
+            continue
         s = h * m * h + r                      # S = H P⁻ H + R
         g = m * h / s                          # K
         e = 1.0 - g * h
@@ -90,26 +100,29 @@ def _covariances_1x1(F_u, Q_u, inv, H, R, P0, N, steady):
     return [[np.array(out)]]
 
 
-def _covariances_by_loop(F_u, Q_u, inv, H, R, P0, N):
+def _covariances_by_loop(F_u, Q_u, inv, H, R, P0, N, missing=None):
     """Return P_post as nested lists, row by row, stopping once P has converged."""
     n = P0.shape[0]
-    changes = np.flatnonzero(inv[1:] != inv[:-1])
-    if H.shape == (1, 2):
-        return _covariances_2x1(F_u, Q_u, inv, H, R, P0, N,
-                                int(changes[-1]) + 1 if changes.size else 0)
-    if H.shape == (1, 1):
-        return _covariances_1x1(F_u, Q_u, inv, H, R, P0, N,
-                                int(changes[-1]) + 1 if changes.size else 0)
-    P_post = np.empty((N, n, n))
-    # From row `steady` on dt never changes again, so a converged P stays put.
+    # From row `steady` on dt never changes again and every row has its measurement,
+    # so a converged P stays put.
     changes = np.flatnonzero(inv[1:] != inv[:-1])
     steady = int(changes[-1]) + 1 if changes.size else 0
+    if missing is not None:
+        steady = max(steady, int(np.flatnonzero(missing)[-1]) + 1)
+    if H.shape == (1, 2):
+        return _covariances_2x1(F_u, Q_u, inv, H, R, P0, N, steady, missing)
+    if H.shape == (1, 1):
+        return _covariances_1x1(F_u, Q_u, inv, H, R, P0, N, steady, missing)
+    P_post = np.empty((N, n, n))
     eye = np.eye(n)
     P = P0
     for k in range(N):
         F, Q = F_u[inv[k]], Q_u[inv[k]]
         Pp = F @ P @ F.T + Q                     # P⁻ = F P Fᵀ + Q
         Pp = 0.5 * (Pp + Pp.T)
+        if missing is not None and missing[k]:   # no measurement: P = P⁻
+            P_post[k] = P = Pp
+            continue
         S = H @ Pp @ H.T + R                     # S = H P⁻ Hᵀ + R
         K = np.linalg.solve(0.5 * (S + S.T), H @ Pp).T  # K = P⁻ Hᵀ S⁻¹
         I_KH = eye - K @ H
@@ -123,8 +136,13 @@ def _covariances_by_loop(F_u, Q_u, inv, H, R, P0, N):
     return soa_stack(P_post)
 
 
-def _covariances_by_information(F_u, inv, H, R, P0, N):
-    """With Q = 0: return P_post as nested lists from the affine information recursion."""
+def _covariances_by_information(F_u, inv, H, R, P0, N, keep=None):
+    """
+    With Q = 0: return P_post as nested lists from the affine information recursion.
+
+    ``keep`` (N,) is 1.0 for a row with its measurement, 0.0 for one without (no
+    information added: Y_k = F⁻ᵀ Y_{k−1} F⁻¹); None: every row has one.
+    """
     n = P0.shape[0]
     Finv_T = np.swapaxes(np.linalg.inv(F_u), -1, -2)  # F⁻ᵀ per distinct dt
     # Row-major vec(F⁻ᵀ Y F⁻¹) = (F⁻ᵀ ⊗ F⁻ᵀ) vec(Y)
@@ -134,21 +152,34 @@ def _covariances_by_information(F_u, inv, H, R, P0, N):
     Y0 = np.linalg.inv(P0)
     A = maps[0] if maps.shape[0] == 1 else soa_select(maps, inv)
     b = [float(v) for v in M.reshape(n * n)]
-    b[0] = np.full(N, b[0])  # one array entry fixes N
+    if keep is None:
+        b[0] = np.full(N, b[0])  # one array entry fixes N
+    else:
+        b = [keep * v for v in b]
     Y = affine_recursion(A, b, (0.5 * (Y0 + Y0.T)).reshape(n * n))
     Y = [[np.ascontiguousarray(Y[:, i * n + j]) for j in range(n)] for i in range(n)]
     return soa_sym(soa_inv(soa_sym(Y), N))
 
 
 def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None,
-                      x0=None, P0=None) -> SeriesResult:
+                      x0=None, P0=None, missing=None, priors: bool = True) -> SeriesResult:
     """
     Filter a series with a linear preset, vectorised; same numbers as run_series.
 
     Arguments as :func:`run_series`. Reusable on plain arrays (one object's series).
+    ``missing`` (N,) flags rows without a measurement (their z is ignored): they are
+    predicted, not updated (gain 0). ``priors`` False leaves x_prior, P_prior and F
+    None (only the smoother needs them).
     """
     if not preset.linear:
         raise ValueError(f'preset {preset.name!r} is not linear; use run_series')
+    keep = None
+    if missing is not None and np.any(missing):
+        missing = np.asarray(missing, dtype=bool).reshape(-1)
+        z = np.where(missing.reshape(-1, *([1] * (np.ndim(z) - 1))), 0.0, z)
+        keep = np.where(missing, 0.0, 1.0)
+    else:
+        missing = None
     dt, z, u, horizon_s, x0, P0 = series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
     N, n, m = dt.shape[0], preset.dim_x, preset.dim_z
     dyn, H, R = preset.dynamics, preset.model.H, preset.model.R
@@ -161,9 +192,9 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
     inv = inv.reshape(-1)
     F_u, Q_u = dyn.F_batch(dts), dyn.Q_batch(dts)
     if not np.any(Q_u) and _well_conditioned(P0):
-        P = _covariances_by_information(F_u, inv, H, R, P0, N)
+        P = _covariances_by_information(F_u, inv, H, R, P0, N, keep)
     else:
-        P = _covariances_by_loop(F_u, Q_u, inv, H, R, P0, N)
+        P = _covariances_by_loop(F_u, Q_u, inv, H, R, P0, N, missing)
 
     F, Q = soa_select(F_u, inv), soa_select(Q_u, inv)
     Hs, Rs = soa_const(H), soa_const(R)
@@ -171,6 +202,8 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
     P_prev = [[_shift(e, P0[i, j], N) for j, e in enumerate(row)] for i, row in enumerate(P)]
     P_prior = soa_prior_covariance(F, P_prev, Q)       # F P Fᵀ + Q
     K = soa_gain(P_prior, Hs, Rs, N)                   # K = P⁻ Hᵀ S⁻¹
+    if keep is not None:                               # no measurement: K = 0
+        K = [[keep * e for e in row] for row in K]
     I_KH = soa_msub(soa_const(np.eye(n)), soa_mm(K, Hs))
     A = soa_mm(I_KH, F)                                # A_k = (I − K_k H) F_k
     zs = [np.ascontiguousarray(z[:, i]) for i in range(m)]
@@ -193,6 +226,9 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
         pred_x, pred_P = predict_ahead(dyn, horizon_s,
                                        [np.ascontiguousarray(x[:, i]) for i in range(n)], P,
                                        us, N)
+    if not priors:
+        return SeriesResult(t_s, x, soa_to_stack(P, N), None, None, None, horizon_s, pred_x,
+                            pred_P)
     return SeriesResult(t_s, x, soa_to_stack(P, N), soa_vector_to_stack(x_prior, N),
                         soa_to_stack(P_prior, N), soa_to_stack(F, N), horizon_s, pred_x,
                         pred_P)

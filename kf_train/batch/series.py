@@ -122,14 +122,24 @@ def series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0, dt=None):
     return dt, z, u, horizon_s, x0, P0
 
 
+def without_gaps(z, missing):
+    """Return (z with 0 on rows flagged ``missing``, the flags or None when there is none)."""
+    if missing is None or not np.any(missing):
+        return z, None
+    missing = np.asarray(missing, dtype=bool).reshape(-1)
+    return np.where(missing.reshape(-1, *([1] * (np.ndim(z) - 1))), 0.0, z), missing
+
+
 def run_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=None,
-               P0=None) -> SeriesResult:
+               P0=None, missing=None) -> SeriesResult:
     """
     Filter a series row by row with the preset's model (any preset, linear or EKF).
 
     ``horizon_s`` None uses the preset's horizon, 0 turns prediction off. ``x0``,
-    ``P0`` override the preset's initial estimate.
+    ``P0`` override the preset's initial estimate. Rows flagged in ``missing`` (N,)
+    have no measurement: they are predicted, not updated (x = x⁻, P = P⁻).
     """
+    z, missing = without_gaps(z, missing)
     dt, z, u, horizon_s, x, P = series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
     N, n = dt.shape[0], preset.dim_x
     model = preset.model
@@ -142,7 +152,8 @@ def run_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=
         try:
             x, P = model.predict(x, P, dt[k], u_k)   # x⁻ = F x + B u, P⁻ = F P Fᵀ + Q
             prior_x[k], prior_P[k] = x, P
-            x, P, _ = model.update(x, P, z[k])        # x = x⁻ + K y, Joseph P
+            if missing is None or not missing[k]:
+                x, P, _ = model.update(x, P, z[k])    # x = x⁻ + K y, Joseph P
             out_x[k], out_P[k] = x, P
             if horizon_s:
                 pred_x[k], pred_P[k] = model.predict(x, P, horizon_s, u_k)
@@ -170,12 +181,13 @@ def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None
                         preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P)
 
 
-def filter_rows(filt, dt: np.ndarray, z, u, horizon_s):
+def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None):
     """
     Predict and update ``filt`` row by row from its current state (no reset).
 
     Return (posterior x, P, prior x, P, predicted x, P), the predictions None without a
-    horizon; a step's ValueError becomes a SeriesError naming the row.
+    horizon; a step's ValueError becomes a SeriesError naming the row. Rows flagged in
+    ``missing`` are predicted, not updated.
     """
     N, n = dt.shape[0], filt.preset.dim_x
     out_x, out_P = np.empty((N, n)), np.empty((N, n, n))
@@ -187,7 +199,8 @@ def filter_rows(filt, dt: np.ndarray, z, u, horizon_s):
         try:
             filt.predict(dt[k], u_k)
             prior_x[k], prior_P[k] = filt.mean, filt.covariance
-            filt.update(z[k])
+            if missing is None or not missing[k]:
+                filt.update(z[k])
             out_x[k], out_P[k] = filt.mean, filt.covariance
             if horizon_s:
                 pred_x[k], pred_P[k] = filt.predict_ahead(horizon_s, u_k)

@@ -22,22 +22,24 @@ from kf_train.batch.smoother import rts_smooth
 import numpy as np
 
 
-def _record(n: int, horizon: bool) -> np.dtype:
-    """Return the record of one row's forward results."""
+def _record(n: int, horizon: bool, gaps: bool = False) -> np.dtype:
+    """Return the record of one row's forward results (``gaps``: with ``updated``)."""
     fields = [('code', '<i8'), ('t', '<f8'), ('x', '<f8', (n,)), ('P', '<f8', (n, n)),
               ('x_prior', '<f8', (n,)), ('P_prior', '<f8', (n, n)), ('F', '<f8', (n, n))]
     if horizon:
         fields += [('predicted_x', '<f8', (n,)), ('predicted_P', '<f8', (n, n))]
+    if gaps:
+        fields.append(('updated', '<f8'))
     return np.dtype(fields)
 
 
 class ForwardSpill:
     """A stream's forward results on disk, block by block, and their smoothing."""
 
-    def __init__(self, directory: str, n: int, horizon: bool):
-        """Create the spill files in ``directory`` (a temporary directory)."""
-        self.n, self.horizon = n, horizon
-        self.record = _record(n, horizon)
+    def __init__(self, directory: str, n: int, horizon: bool, gaps: bool = False):
+        """Create the spill files in ``directory`` (``gaps``: keep each row's ``updated``)."""
+        self.n, self.horizon, self.gaps = n, horizon, gaps
+        self.record = _record(n, horizon, gaps)
         self.smoothed_record = np.dtype([('x', '<f8', (n,)), ('var', '<f8', (n,))])
         self.path = os.path.join(directory, 'forward.bin')
         self.smoothed_path = os.path.join(directory, 'smoothed.bin')
@@ -54,6 +56,8 @@ class ForwardSpill:
             rec[name] = getattr(est, 't_s' if name == 't' else name)
         if self.horizon:
             rec['predicted_x'], rec['predicted_P'] = est.predicted_x, est.predicted_P
+        if self.gaps:
+            rec['updated'] = est.updated
         rec.tofile(self.stream)
         self.blocks.append((self.rows, N))
         self.rows += N
@@ -103,7 +107,8 @@ class ForwardSpill:
             sm = self.read_smoothed(first, count)
             est = Estimates(rec['t'], rec['x'], rec['P'], rec['x_prior'], rec['P_prior'],
                             rec['F'], rec['predicted_x'] if self.horizon else None,
-                            rec['predicted_P'] if self.horizon else None)
+                            rec['predicted_P'] if self.horizon else None,
+                            rec['updated'] if self.gaps else None)
             yield first, rec['code'], est, (sm['x'], sm['var'])
 
 

@@ -23,19 +23,25 @@ from kf_train.filters import PARTICLE_KINDS
 import numpy as np
 
 
+class GapsFound(Exception):
+    """Rows without a measurement reached an engine made without ``gaps``: start again."""
+
+
 class StreamingReplay:
     """Filter rows pushed in pieces; return the estimates block by block."""
 
     def __init__(self, preset, *, horizon_s=None, t0_s: float = 0.0, filt=None,
                  smooth: bool = False, block_rows: int = DEFAULT_BLOCK_ROWS,
-                 spill_dir: Optional[str] = None):
+                 spill_dir: Optional[str] = None, gaps: bool = False):
         """
         Filter with ``preset`` (or ``filt``, a filter of its family, row by row).
 
         ``horizon_s`` None uses the preset's, 0 none; ``t0_s`` is when the initial
         estimate holds; ``smooth`` adds the RTS-smoothed columns (spilling the forward
         pass under ``spill_dir``, default the system's temporary directory);
-        ``block_rows`` (>= 1) is the block length.
+        ``block_rows`` (>= 1) is the block length. ``gaps``: the input may have rows
+        without a measurement (``Rows.missing``); the output then ends with a column
+        ``updated`` (1.0 updated, 0.0 predicted only).
         """
         if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
             raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
@@ -45,9 +51,10 @@ class StreamingReplay:
         owner = preset if filt is None else filt.preset
         self.preset, self.block_rows, self.smooth = owner, int(block_rows), smooth
         self.horizon = resolve_horizon(owner, horizon_s)
-        self.header = output_header(owner, self.horizon, smooth)
+        self.gaps = gaps
+        self.header = output_header(owner, self.horizon, smooth, gaps)
         self.states = ObjectStates(owner, t0_s, filt)
-        self.filter = BlockFilter(owner, self.horizon, self.states)
+        self.filter = BlockFilter(owner, self.horizon, self.states, priors=smooth)
         self.pending: List[Rows] = []
         self.pending_rows = 0
         self.rows_in = 0           # rows pushed so far
@@ -59,6 +66,8 @@ class StreamingReplay:
 
     def push(self, rows: Rows) -> List[OutputBlock]:
         """Take more rows; return the output of every block they complete."""
+        if rows.missing is not None and not self.gaps and rows.missing.any():
+            raise GapsFound('rows without a measurement need StreamingReplay(gaps=True)')
         if rows.t.shape[0]:
             self.pending.append(rows)
             self.pending_rows += rows.t.shape[0]
@@ -109,34 +118,43 @@ class StreamingReplay:
         first = self.rows_done
         self.has_codes = rows.codes is not None
         est = self.filter.run(rows, first)
+        if self.gaps:
+            est = est._replace(updated=np.ones(rows.t.shape[0]) if rows.missing is None
+                               else np.where(rows.missing, 0.0, 1.0))
         self.rows_done += rows.t.shape[0]
         if not self.smooth:
             return [OutputBlock(first, rows.codes, estimate_columns(est))]
         if self.spill is None:
             self._temporary = tempfile.mkdtemp(prefix='kf-train-smooth-', dir=self._spill_dir)
             self.spill = ForwardSpill(self._temporary, self.preset.dim_x,
-                                      self.horizon is not None)
+                                      self.horizon is not None, self.gaps)
         self.spill.append(rows.codes, est)
         return []
 
 
 def filter_table(preset, t, z, u=None, codes: Optional[Sequence[int]] = None, *,
                  horizon_s=None, t0_s: float = 0.0, filt=None, smooth: bool = False,
-                 block_rows: int = DEFAULT_BLOCK_ROWS) -> List[np.ndarray]:
+                 block_rows: int = DEFAULT_BLOCK_ROWS, missing=None,
+                 spill_dir: Optional[str] = None) -> List[np.ndarray]:
     """
     Return the output columns (as :func:`kf_train.batch.chunked.output_header`) of a table.
 
     ``codes`` (one int per row, or None for one object) tells the objects apart; the
     table runs through :class:`StreamingReplay` in blocks of ``block_rows``, so the
-    numbers equal those of a streamed replay of the same rows.
+    numbers equal those of a streamed replay of the same rows. ``missing`` (one bool per
+    row, or None) flags rows without a measurement; given, the last column is
+    ``updated`` (see :class:`StreamingReplay`).
     """
     t = np.asarray(t, dtype=float).reshape(-1)
     z = np.asarray(z, dtype=float).reshape(t.shape[0], -1)
     u = None if u is None else np.asarray(u, dtype=float).reshape(t.shape[0], -1)
     codes = None if codes is None else np.asarray(codes, dtype=np.int64).reshape(-1)
+    if missing is not None:
+        missing = np.asarray(missing, dtype=bool).reshape(-1)
     with StreamingReplay(preset, horizon_s=horizon_s, t0_s=t0_s, filt=filt, smooth=smooth,
-                         block_rows=block_rows) as engine:
-        blocks = engine.push(Rows(t, z, u, codes)) + list(engine.finish())
+                         block_rows=block_rows, gaps=missing is not None,
+                         spill_dir=spill_dir) as engine:
+        blocks = engine.push(Rows(t, z, u, codes, missing)) + list(engine.finish())
     width = len(engine.header)
     if not blocks:
         return [np.empty(0) for _ in range(width)]

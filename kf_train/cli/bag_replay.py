@@ -40,6 +40,7 @@ import sys
 import time
 from typing import Callable, Iterator, List, NamedTuple, Optional
 
+from kf_train.cli.progress import counted
 from kf_train.cli.replay import write_atomic
 from kf_train.estimator import StreamEstimator
 from kf_train.io import bagio, bagio_output
@@ -95,7 +96,8 @@ class BagRun:
         ``diagnostics(record_ns, status)`` is called every ``diagnostics_period_s`` of
         record time (from the first message's), before the first message at or after.
         """
-        messages = self.bag.messages()
+        messages = counted(self.bag.messages(), self.bag.measurement_count
+                           + self.bag.control_count, 'msg', 'replay')   # a bar after 2 s
         first = next(messages, None)
         if first is None:
             return

@@ -47,11 +47,15 @@ from the filter's covariance; for the particle filters the particles'); ``--alph
 ``--beta``, ``--kappa`` tune the UKF, ``--particles``, ``--seed``,
 ``--resample-threshold`` the particle filters, ``--roughening`` the bootstrap one.
 
-Bad input (a missing column, a non-numeric or non-finite cell, a row with the wrong
-number of fields, a non-increasing ``t`` (per id), an empty id) is reported with the
-file, line and column,
-the exit code is 1, and no output file is written: output goes to a temporary file
-in the same directory that replaces OUTPUT only when complete.
+An empty measurement cell means no measurement in that row: the row is predicted, not
+updated, and the output ends with a column ``updated`` (1.0 or 0.0) when the input has
+such rows (a complete input's output is unchanged); 'nan' is refused, not missing.
+
+Bad input (a missing column, a non-numeric or non-finite cell, an empty t, u or id,
+a row with the wrong number of fields, a non-increasing ``t`` (per id)) is reported
+with the file, line and column, the exit code is 1, and no output file is written:
+output goes to a temporary file in the same directory that replaces OUTPUT only when
+complete.
 """
 
 import argparse
@@ -66,9 +70,10 @@ from typing import Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequenc
 import warnings
 
 from kf_train.batch import (
-    bank_time_steps, group_rows, Groups, MAX_ABS_TIME_S, RailSeriesFilter, rts_smooth, run_bank,
-    run_filter_series, run_linear_series, run_series, SeriesError, SeriesResult, smooth_series,
-    SmootherResult, TimeOrderError)
+    bank_time_steps, DEFAULT_BLOCK_ROWS, filter_table, group_rows, Groups, MAX_ABS_TIME_S,
+    output_header, RailSeriesFilter, resolve_horizon, RowError, rts_smooth, run_bank,
+    run_filter_series, run_linear_series, run_series, SeriesResult, SmootherResult,
+    TimeOrderError)
 from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
 from kf_train.estimator import RAIL_FILTER_KINDS
@@ -103,6 +108,8 @@ class Table(NamedTuple):
     """With an ``id`` column: each row's object, an index into ``id_labels`` (N,)."""
     id_labels: Optional[List[str]] = None
     """The distinct ids, sorted."""
+    missing: Optional[np.ndarray] = None
+    """With ``gaps``: the rows with an empty measurement cell (N,) (its value NaN), or None."""
 
 
 def required_columns(preset: Preset) -> List[Tuple[str, ...]]:
@@ -175,11 +182,13 @@ def _parse_fast(body: str, ncols: int) -> Optional[np.ndarray]:
     return values.reshape(rows, ncols)
 
 
-def _cell(path: str, line: int, column: str, text: str) -> float:
-    """Return a cell's value; raise InputError naming the line and column."""
+def _cell(path: str, line: int, column: str, text: str, empty_ok: bool = False) -> float:
+    """Return a cell's value (NaN for an empty one if ``empty_ok``); raise InputError."""
     cell = text.strip()
     where = f"{path} line {line}, column '{column}'"
     if not cell:
+        if empty_ok:
+            return float('nan')
         raise InputError(f'{where}: empty cell, expected a number')
     try:
         if '_' in cell:
@@ -193,11 +202,12 @@ def _cell(path: str, line: int, column: str, text: str) -> float:
 
 
 def _parse_careful(path: str, body: str, header: List[str], wanted: List[str],
-                   labelled: Optional[str] = None):
+                   labelled: Optional[str] = None, empty_ok=frozenset()):
     """
     Return (values (rows, len(wanted)), lines (rows,), labels) parsing cell by cell.
 
-    ``labelled`` names a text column (the id) returned as stripped strings (rows,).
+    ``labelled`` names a text column (the id) returned as stripped strings (rows,);
+    an empty cell of a column in ``empty_ok`` is NaN.
     """
     index = [header.index(name) for name in wanted]
     label_index = None if labelled is None else header.index(labelled)
@@ -210,7 +220,8 @@ def _parse_careful(path: str, body: str, header: List[str], wanted: List[str],
         if len(row) != len(header):
             raise InputError(f'{path} line {line}: {len(row)} fields, but the header has '
                              f'{len(header)}')
-        values.append([_cell(path, line, name, row[i]) for name, i in zip(wanted, index)])
+        values.append([_cell(path, line, name, row[i], name in empty_ok)
+                       for name, i in zip(wanted, index)])
         lines.append(line)
         if label_index is not None:
             label = row[label_index].strip()
@@ -247,12 +258,14 @@ def _decode(path: str, data: bytes) -> str:
 
 
 def read_table(path: str, needed: Sequence[Tuple[str, ...]], text=None,
-               ids: bool = False) -> Table:
+               ids: bool = False, gaps: Sequence[Tuple[str, ...]] = ()) -> Table:
     """
     Read the needed columns of a CSV (``text``, str or bytes, given, or read from ``path``).
 
     With ``ids`` and an ``id`` column in the header, the table's ``ids`` and
-    ``id_labels`` say which object every row belongs to.
+    ``id_labels`` say which object every row belongs to. The columns in ``gaps``
+    (entries of ``needed``: the measurements) may have empty cells: their value is NaN
+    and the table's ``missing`` flags the rows that have one ('nan' text is refused).
 
     Plain files (decimal numbers, commas, newlines) are converted in bulk by
     :mod:`kf_train.io.csvio`; anything else, and every error, goes through the csv
@@ -291,12 +304,17 @@ def read_table(path: str, needed: Sequence[Tuple[str, ...]], text=None,
                 lines = np.arange(values.shape[0], dtype=np.int64) + HEADER_LINE + 1
                 return Table(dict(zip(wanted, values.T)), values.shape[0], lines)
     # Something is off (or unusual): parse cell by cell to name the line and column.
-    values, lines, labels = _parse_careful(path, body_text, header, wanted, labelled)
-    codes = names = None
+    empty_ok = frozenset(name for name, names in zip(wanted, needed) if names in gaps)
+    values, lines, labels = _parse_careful(path, body_text, header, wanted, labelled,
+                                           empty_ok)
+    codes = names = missing = None
     if labelled is not None:
         names, codes = np.unique(np.array(labels, dtype=str), return_inverse=True)
         codes, names = codes.reshape(-1).astype(np.int64), [str(n) for n in names]
-    return Table(dict(zip(wanted, values.T)), values.shape[0], lines, codes, names)
+    if empty_ok:
+        gap = np.isnan(values[:, [wanted.index(name) for name in sorted(empty_ok)]]).any(axis=1)
+        missing = gap if gap.any() else None
+    return Table(dict(zip(wanted, values.T)), values.shape[0], lines, codes, names, missing)
 
 
 def check_times(path: str, t: np.ndarray, lines: np.ndarray, t0_s: float) -> None:
@@ -460,8 +478,16 @@ class ReplaySummary(NamedTuple):
 
 def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
            smooth: bool = False, t0_s: float = 0.0, fast: bool = True,
-           filt: Optional[Filter] = None) -> ReplaySummary:
-    """Replay ``input_path`` through ``preset`` into ``output_path``; raise InputError."""
+           filt: Optional[Filter] = None, block_rows: int = DEFAULT_BLOCK_ROWS,
+           spill_dir: Optional[str] = None) -> ReplaySummary:
+    """
+    Replay ``input_path`` through ``preset`` into ``output_path``; raise InputError.
+
+    The table is read whole, then filtered in blocks of ``block_rows`` exactly as the
+    streamed replay filters it (:func:`kf_train.batch.stream.filter_table`), so both
+    write the same bytes for any input size. ``fast`` False filters the whole table as
+    one block (a complete table only), whatever ``block_rows`` says.
+    """
     if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
         raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
                          'smoother does not apply to particles')
@@ -469,38 +495,41 @@ def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
     text = None
     if input_path == '-':
         text = sys.stdin.buffer.read() if hasattr(sys.stdin, 'buffer') else sys.stdin.read()
-    table = read_table(input_path, required_columns(preset), text, ids=True)
+    needed = required_columns(preset)
+    table = read_table(input_path, needed, text, ids=True,
+                       gaps=needed[1:1 + preset.dim_z])
     t = table.columns['t']
-    groups = None
     if table.ids is None:
         check_times(input_path, t, table.lines, t0_s)
     else:
-        groups = group_rows(table.ids)
-        check_bank_times(input_path, t, table.lines, groups, table.id_labels, t0_s)
-    z = np.column_stack([table.columns[name] for name in
-                         _resolve(input_path, list(table.columns), preset.measurement_columns())]
+        check_bank_times(input_path, t, table.lines, group_rows(table.ids), table.id_labels,
+                         t0_s)
+    wanted = _resolve(input_path, list(table.columns), needed)
+    z = np.column_stack([table.columns[name] for name in wanted[1:1 + preset.dim_z]]
                         ) if table.rows else np.empty((0, preset.dim_z))
     u = None
     if preset.dim_u:
-        u = np.column_stack([table.columns[name] for name in preset.control_columns()]) \
+        u = np.column_stack([table.columns[name] for name in wanted[1 + preset.dim_z:]]) \
             if table.rows else np.empty((0, preset.dim_u))
+    if not fast and table.missing is None:
+        block_rows = max(table.rows, 1)
     try:
-        result = run_preset(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s, fast=fast,
-                            filt=filt, groups=groups)
-        smoothed = None
-        if smooth:
-            smoothed = smooth_series(result) if groups is None else smooth_bank(result, groups)
-    except SeriesError as error:
-        raise InputError(f'{input_path} line {table.lines[error.row]}: {error.reason}') from None
+        columns = filter_table(preset, t, z, u, table.ids, horizon_s=horizon_s, t0_s=t0_s,
+                               filt=filt, smooth=smooth, block_rows=block_rows,
+                               missing=table.missing, spill_dir=spill_dir)
+    except RowError as error:
+        raise InputError(f'{input_path} line {table.lines[error.row]}: {error.reason}'
+                         ) from None
     except ValueError as error:
         raise InputError(f'{input_path}: {error}') from None
-    header, columns = output_columns(preset, result, smoothed)
-    if groups is None:
+    header = output_header(preset, resolve_horizon(preset, horizon_s), smooth,
+                           table.missing is not None)
+    if table.ids is None:
         write_atomic(output_path, format_csv(header, columns))
     else:
-        write_atomic(output_path, format_csv([ID_COLUMN] + header, columns,
-                                             labels=table.id_labels, codes=table.ids))
         header = [ID_COLUMN] + header
+        write_atomic(output_path, format_csv(header, columns, labels=table.id_labels,
+                                             codes=table.ids))
     return ReplaySummary(table.rows, header, time.perf_counter() - start)
 
 

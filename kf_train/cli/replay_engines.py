@@ -4,7 +4,8 @@ How ``kf-train replay`` runs: streamed in bounded memory, all in memory, or on D
 * ``--engine stream`` (default): :func:`kf_train.cli.replay_stream.stream_replay`,
   blocks of ``--block-rows`` rows, any input size, CSV or Parquet.
 * ``--engine memory``: the whole table in memory (:func:`kf_train.cli.replay.replay`),
-  CSV only; equal to ``stream`` when the input has at most ``--block-rows`` rows.
+  CSV only; filtered in the same blocks of ``--block-rows``, so it writes the bytes
+  of ``stream`` for any input size.
 * ``--engine dask``: a fleet with an ``id`` column on a Dask cluster
   (:func:`kf_train.cli.fleet_dask.dask_replay`): ``--workers N`` local processes, or
   ``--scheduler ADDRESS`` to join a running cluster.
@@ -56,16 +57,42 @@ def check_engine_options(parser: argparse.ArgumentParser, args) -> None:
                      '(--engine stream)')
 
 
+def check_output_path(path: str) -> None:
+    """
+    Raise a one-line ValueError if OUTPUT cannot be written where it is asked for.
+
+    Every output (CSV, a Parquet file, a dataset directory) is first written beside its
+    target, so the target's parent directory must exist and be writable.
+    """
+    if path == '-':
+        return
+    target = os.path.abspath(path.rstrip(os.sep) or os.sep)
+    directory = os.path.dirname(target)
+    if not os.path.isdir(directory):
+        raise ValueError(f'cannot write {path}: directory {directory} does not exist')
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise ValueError(f'cannot write {path}: directory {directory} is not writable')
+    dataset = os.path.isdir(path) or path.endswith(os.sep)
+    if os.path.isdir(target) and not dataset:
+        raise ValueError(f'cannot write {path}: it is a directory')
+
+
 def run_engine(args, preset, filt):
     """Run the replay the options ask for; return its ReplaySummary (raise InputError)."""
+    check_output_path(args.output)
     common = {'horizon_s': args.horizon, 'smooth': args.smooth, 't0_s': args.t0, 'filt': filt}
     if args.engine == 'memory':
         from kf_train.cli.replay import replay
-        return replay(preset, args.input, args.output, **common)
+        return replay(preset, args.input, args.output, block_rows=args.block_rows,
+                      spill_dir=args.spill_dir, **common)
     if args.engine == 'dask':
         from kf_train.cli.fleet_dask import dask_replay
         return dask_replay(preset, args.input, args.output, workers=args.workers,
                            scheduler=args.scheduler, **common)
     from kf_train.cli.replay_stream import stream_replay
-    return stream_replay(preset, args.input, args.output, block_rows=args.block_rows,
-                         codec=args.codec, spill_dir=args.spill_dir, **common)
+    try:
+        return stream_replay(preset, args.input, args.output, block_rows=args.block_rows,
+                             codec=args.codec, spill_dir=args.spill_dir, **common)
+    except OSError as error:              # e.g. the disk filled up: one line, no traceback
+        raise ValueError(f'{error.filename or args.output}: {error.strerror or error}'
+                         ) from None

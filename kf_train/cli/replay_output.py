@@ -32,14 +32,12 @@ class Output:
     def __init__(self, path: str, header: List[str], fast: bool):
         """Open the temporary file and write the header (``fast``: with polars)."""
         self.path, self.header, self.fast = path, header, fast
-        self.temporary = None
-        if path == '-':
-            self.stream = None
-            sys.stdout.write(','.join(header) + '\n')
-            return
-        directory = os.path.dirname(os.path.abspath(path))
-        handle, self.temporary = tempfile.mkstemp(
-            dir=directory, prefix='.' + os.path.basename(path), suffix='.tmp')
+        if path == '-':        # standard output: a temporary file first, copied when done
+            handle, self.temporary = tempfile.mkstemp(prefix='kf-train-out-', suffix='.csv')
+        else:
+            directory = os.path.dirname(os.path.abspath(path))
+            handle, self.temporary = tempfile.mkstemp(
+                dir=directory, prefix='.' + os.path.basename(path), suffix='.tmp')
         self.stream = os.fdopen(handle, 'wb')
         if fast:
             self.writer = columnar.CsvWriter(self.stream, header)
@@ -49,40 +47,46 @@ class Output:
     def write(self, columns: Sequence[np.ndarray], codes, names: Sequence[str]) -> None:
         """Write a block: its columns and the stream code of every row's id (or None)."""
         ids = _block_ids(codes, names)
-        if self.stream is None or not self.fast:
+        if not self.fast:
             prefix = None if ids is None else (csvio.format_labels(ids[0]), ids[1])
             N = len(columns[0])
             for start in range(0, N, csvio.BLOCK_ROWS):     # small work arrays, in cache
-                text = csvio.format_rows(columns, start, min(start + csvio.BLOCK_ROWS, N),
-                                         prefix)
-                if self.stream is None:
-                    sys.stdout.write(text.decode('utf-8'))
-                else:
-                    self.stream.write(text)
+                self.stream.write(csvio.format_rows(
+                    columns, start, min(start + csvio.BLOCK_ROWS, N), prefix))
             return
         self.writer.write(columns, None if ids is None else columnar.id_series(*ids))
 
     def run(self, blocks: Iterable, names: Sequence[str]) -> None:
         """Write every (columns, codes) block (with polars, while the next is computed)."""
-        if self.fast and self.stream is not None:
+        if self.fast:
             in_background(blocks, lambda block: self.write(*block, names))
             return
         for columns, codes in blocks:
             self.write(columns, codes, names)
 
     def commit(self) -> None:
-        """Move the finished file into place."""
-        if self.stream is None:
-            sys.stdout.flush()
-            return
+        """Move the finished file into place (or copy it to standard output)."""
         self.stream.close()
-        _publish(self.temporary, self.path)
+        if self.path != '-':
+            _publish(self.temporary, self.path)
+            return
+        try:
+            with open(self.temporary, 'rb') as finished:
+                if hasattr(sys.stdout, 'buffer'):
+                    sys.stdout.flush()
+                    shutil.copyfileobj(finished, sys.stdout.buffer, 1 << 20)
+                    sys.stdout.buffer.flush()
+                else:
+                    for chunk in iter(lambda: finished.read(1 << 20), b''):
+                        sys.stdout.write(chunk.decode('utf-8'))
+                    sys.stdout.flush()
+        finally:
+            _remove(self.temporary)
 
     def abort(self) -> None:
         """Remove the temporary file."""
-        if self.stream is not None:
-            self.stream.close()
-            _remove(self.temporary)
+        self.stream.close()
+        _remove(self.temporary)
 
 
 class ParquetFileOutput(Output):

@@ -16,19 +16,28 @@ Two CSV paths give the same bytes:
 
 Parquet needs the extra. Output goes to a temporary file (or directory) beside OUTPUT
 that replaces it only when complete, so bad input leaves no partial output.
+
+Gaps (an empty measurement cell, a null in Parquet) are found while reading: the first
+one makes the replay start again from the top with the ``updated`` column
+(:class:`kf_train.batch.GapsFound`), so a complete input pays nothing and keeps its
+bytes. Standard input is copied to a temporary file first, so it can be read again;
+standard output is written when the output is complete.
 """
 
 import io
 import os
 import queue
 import re
+import shutil
 import sys
+import tempfile
 import threading
 import time
 from typing import Dict, Iterator, List, Optional
 
-from kf_train.batch import DEFAULT_BLOCK_ROWS, RowError, Rows, StreamingReplay
+from kf_train.batch import DEFAULT_BLOCK_ROWS, GapsFound, RowError, Rows, StreamingReplay
 from kf_train.cli import replay as inmemory
+from kf_train.cli.progress import Progress
 from kf_train.io import columnar
 import numpy as np
 
@@ -70,14 +79,21 @@ class Source:
         """Read ``path`` for ``preset``; ``where`` is 'line' (CSV) or 'row' (Parquet)."""
         self.path, self.preset, self.where = path, preset, where
         self.needed = inmemory.required_columns(preset)
+        self.gaps_needed = self.needed[1:1 + preset.dim_z]   # measurements may be empty
         self.wanted: List[str] = []
         self.id_column: Optional[str] = None
         self.labels = Labels()
         self.rows = 0
+        self.total: Optional[int] = None   # rows in the input, when known (the bar's end)
         self.index: List[tuple] = []   # per piece: (first row, rows, first line, lines)
 
+    @property
+    def gaps(self) -> List[str]:
+        """Return the columns (as the file names them) whose empty cells mean no measurement."""
+        return self.wanted[1:1 + self.preset.dim_z]
+
     def rows_of(self, columns: Dict[str, np.ndarray], codes, labels,
-                lines: Optional[np.ndarray] = None) -> Rows:
+                lines: Optional[np.ndarray] = None, missing=None) -> Rows:
         """Return a piece as engine rows (codes made stream-wide; ``lines`` if not plain)."""
         t = columns[self.wanted[0]]
         N = t.shape[0]
@@ -90,7 +106,7 @@ class Source:
         plain = lines is None or int(lines[-1]) - first_line + 1 == N
         self.index.append((self.rows, N, first_line, None if plain else lines))
         self.rows += N
-        return Rows(t, z.reshape(N, self.preset.dim_z), u, stream_codes)
+        return Rows(t, z.reshape(N, self.preset.dim_z), u, stream_codes, missing)
 
     def number(self, row: int) -> int:
         """Return the file line (CSV) or the 1-based data row (Parquet) of a stream row."""
@@ -119,7 +135,7 @@ class CsvSource(Source):
 
     def start(self) -> None:
         """Read and check the header."""
-        self.stream = _stdin() if self.path == '-' else _open(self.path)
+        self.stream = _open(getattr(self, 'spooled', None) or self.path)
         head = self.stream.readline()
         header = _header_of(self.path, head)
         self.wanted = inmemory._resolve(self.path, header, self.needed)
@@ -134,16 +150,16 @@ class CsvSource(Source):
                 table = self._parse(self.head, block, line)
                 if table.rows:
                     yield self.rows_of(table.columns, table.ids, table.id_labels,
-                                       table.lines - 2 + line)
+                                       table.lines - 2 + line, table.missing)
                 line += block.count(b'\n')
         finally:
-            if self.path != '-':
-                self.stream.close()
+            self.stream.close()
 
     def _parse(self, head: bytes, block: bytes, line: int):
         """Parse one block; errors name the file's line."""
         try:
-            return inmemory.read_table(self.path, self.needed, head + b'\n' + block, ids=True)
+            return inmemory.read_table(self.path, self.needed, head + b'\n' + block, ids=True,
+                                       gaps=self.gaps_needed)
         except inmemory.InputError as error:
             prefix = f'{self.path} line '
             message = str(error)
@@ -160,6 +176,19 @@ def _stdin():
     if hasattr(sys.stdin, 'buffer'):
         return sys.stdin.buffer
     return io.BytesIO(sys.stdin.read().encode('utf-8'))
+
+
+def _spool_stdin() -> str:
+    """
+    Copy standard input to a temporary file and return its path.
+
+    A replay may have to read its input twice (a gap found late, an error to name), so
+    standard input goes to disk first, not to memory.
+    """
+    handle, path = tempfile.mkstemp(prefix='kf-train-stdin-', suffix='.csv')
+    with os.fdopen(handle, 'wb') as out:
+        shutil.copyfileobj(_stdin(), out, BLOCK_BYTES)
+    return path
 
 
 def _open(path: str):
@@ -207,8 +236,9 @@ class FastCsvSource(Source):
         """Yield the rows, a few MiB of text at a time."""
         try:
             for piece in columnar.read_csv_pieces(_line_blocks(self.stream), self.header,
-                                                  self.wanted, self.id_column):
-                yield self.rows_of(piece.columns, piece.codes, piece.labels)
+                                                  self.wanted, self.id_column, self.gaps):
+                yield self.rows_of(piece.columns, piece.codes, piece.labels,
+                                   missing=piece.missing)
         finally:
             self.stream.close()
 
@@ -226,12 +256,14 @@ class ParquetSource(Source):
             raise inmemory.InputError(str(error).replace(
                 f'{self.path} line {inmemory.HEADER_LINE}:', f'{self.path}:', 1)) from None
         self.id_column = ID_COLUMN if ID_COLUMN in header else None
+        self.total = columnar.parquet_rows(self.path)
 
     def pieces(self) -> Iterator[Rows]:
         """Yield the rows in pieces of a block."""
         for piece in columnar.read_parquet_pieces(self.path, self.wanted, self.id_column,
-                                                  DEFAULT_BLOCK_ROWS):
-            yield self.rows_of(piece.columns, piece.codes, piece.labels)
+                                                  DEFAULT_BLOCK_ROWS, self.gaps):
+            yield self.rows_of(piece.columns, piece.codes, piece.labels,
+                               missing=piece.missing)
 
 
 # ---------------------------------------------------------------------------
@@ -301,15 +333,17 @@ def prefetch(items: Iterator, depth: int = 2) -> Iterator:
 
 
 def _blocks(source: Source, engine: StreamingReplay) -> Iterator[tuple]:
-    """Yield the output blocks (columns, codes) of a whole input."""
+    """Yield the output blocks (columns, codes) of a whole input (a bar after 2 s)."""
     pieces = source.pieces()
     if not isinstance(source, CsvSource):            # polars readers: read ahead
         pieces = prefetch(pieces)
-    for rows in pieces:
-        for block in engine.push(rows):
+    with Progress(source.total, 'rows', 'replay') as progress:
+        for rows in pieces:
+            for block in engine.push(rows):
+                yield block.columns, block.codes
+            progress.advance(rows.t.shape[0])
+        for block in engine.finish():
             yield block.columns, block.codes
-    for block in engine.finish():
-        yield block.columns, block.codes
 
 
 def _run_once(source: Source, output_path: str, fast_output: bool, options: dict):
@@ -356,9 +390,28 @@ def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
                                   if parquet else f'--codec polars: {columnar.EXTRA_HINT}')
     fast = have and codec != 'builtin'
     options = {'horizon_s': horizon_s, 't0_s': t0_s, 'filt': filt, 'smooth': smooth,
-               'block_rows': block_rows, 'spill_dir': spill_dir}
+               'block_rows': block_rows, 'spill_dir': spill_dir, 'gaps': False}
+    spooled = _spool_stdin() if input_path == '-' else None
+    try:
+        while True:
+            try:
+                rows, header = _replay_with(preset, input_path, output_path, fast, options,
+                                            spooled)
+            except GapsFound:                  # rows without a measurement: again, with
+                options['gaps'] = True         # the column that flags them
+                continue
+            return inmemory.ReplaySummary(rows, header, time.perf_counter() - start)
+    finally:
+        if spooled is not None:
+            os.unlink(spooled)
+
+
+def _replay_with(preset, input_path: str, output_path: str, fast: bool, options: dict,
+                 spooled: Optional[str]):
+    """Replay with the readers in turn until one vouches for the input; return (rows, header)."""
     sources = _sources(preset, input_path, fast)
     for attempt, source in enumerate(sources):
+        source.spooled = spooled
         last = attempt == len(sources) - 1
         try:
             header = _run_once(source, output_path, fast, options)
@@ -375,5 +428,5 @@ def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
             raise
         except ValueError as error:
             raise inmemory.InputError(f'{input_path}: {error}') from None
-        return inmemory.ReplaySummary(source.rows, header, time.perf_counter() - start)
+        return source.rows, header
     raise AssertionError('the careful reader never gives up')  # pragma: no cover

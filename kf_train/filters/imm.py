@@ -35,8 +35,10 @@ gets its exact probability.
 import math
 from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 
+from kf_train.filters import imm_stack
+from kf_train.filters.imm_stack import frozen as _frozen, LinearStack
 from kf_train.filters.kalman import UpdateResult
-from kf_train.filters.validation import as_covariance, as_duration, as_finite_array, as_vector
+from kf_train.filters.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -147,11 +149,7 @@ class RateTransition:
 def combine(means: np.ndarray, covariances: np.ndarray,
             probabilities: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """Return the moment-matched (x, P) of a Gaussian mixture."""
-    x = probabilities.dot(means)                                    # x = Σ μ_j x_j
-    d = means - x
-    P = np.einsum('j,jab->ab', probabilities, covariances) + \
-        np.einsum('j,ja,jb->ab', probabilities, d, d)                # P = Σ μ_j (P_j + d dᵀ)
-    return x, 0.5 * (P + P.T)
+    return imm_stack.combine(means, covariances, probabilities)  # x = Σ μ_j x_j, P = ...
 
 
 def log_likelihood(result: UpdateResult) -> float:
@@ -166,6 +164,29 @@ def log_likelihood(result: UpdateResult) -> float:
     return -0.5 * (result.nis + log_det + S.shape[0] * _LOG_2PI)
 
 
+def _measurement(z) -> float:
+    """Return a scalar measurement z as a float (a finite float passes unconverted)."""
+    if type(z) is float and math.isfinite(z):
+        return z
+    if type(z) is np.ndarray and z.shape == (1,) and z.dtype == np.float64:
+        value = float(z[0])
+        if math.isfinite(value):
+            return value
+    z = as_vector('z', z)
+    if z.shape[0] != 1:
+        raise ValueError(f'z must have length 1, got {z.shape[0]}')
+    return float(z[0])
+
+
+def _variance(R) -> float:
+    """Return a 1x1 measurement noise R as a float, checked as as_covariance does."""
+    if type(R) is np.ndarray and R.shape == (1, 1) and R.dtype == np.float64:
+        value = float(R[0, 0])
+        if 0.0 <= value < math.inf:
+            return value
+    return float(as_covariance('R', R, 1)[0, 0])
+
+
 class IMM:
     """
     The IMM's models and arithmetic; every method is pure (states in, states out).
@@ -175,6 +196,9 @@ class IMM:
     callable ``(dt_s, state) -> Π`` (:class:`FixedTransition`,
     :class:`RateTransition` or a model's own). ``entry``: optional
     ``(j, x, P) -> (x, P)`` applied to each component that switches into mode j.
+    When every mode is a plain LinearModel measuring a scalar, the modes are
+    computed as one stack (:mod:`kf_train.filters.imm_stack`); otherwise mode by mode
+    through their own ``predict`` and ``update``.
     """
 
     def __init__(self, modes: Sequence, transition: Callable, mode_names=None,
@@ -191,6 +215,8 @@ class IMM:
             raise ValueError(f'mode_names must be {len(self.modes)} distinct names, got '
                              f'{names!r}')
         self.mode_names = names
+        self._stack = LinearStack.of(self.modes)
+        self._checked_matrix = None
 
     @property
     def mode_count(self) -> int:
@@ -208,45 +234,80 @@ class IMM:
 
     def estimate(self, state: IMMState) -> Tuple[np.ndarray, np.ndarray]:
         """Return the combined (x, P) of a state."""
-        return combine(state.means, state.covariances, state.probabilities)
+        return imm_stack.combine(state.means, state.covariances, state.probabilities)
+
+    def _transition_matrix(self, dt_s: float, state: IMMState) -> np.ndarray:
+        """Return the checked Π of this prediction (a read-only Π is checked once)."""
+        matrix = self.transition(dt_s, state)
+        if matrix is self._checked_matrix:
+            return matrix
+        checked = check_transition_matrix(matrix, self.mode_count)
+        if _frozen(matrix):  # it cannot change: the next call may skip the check
+            self._checked_matrix = matrix
+        return checked
 
     def mix(self, state: IMMState, matrix: np.ndarray):
         """Return (c̄, mixed means, mixed covariances) for transition matrix Π."""
-        mu, means, covs = state.probabilities, state.means, state.covariances
-        count = self.mode_count
-        matrix = check_transition_matrix(matrix, count)
+        return self._mix(state, check_transition_matrix(matrix, self.mode_count))
+
+    def _mix(self, state: IMMState, matrix: np.ndarray):
+        """Do :meth:`mix` for a checked Π."""
+        mu = state.probabilities
         cbar = mu.dot(matrix)                                   # c̄_j = Σ_i Π_ij μ_i
-        mixed_x = np.empty_like(means)
-        mixed_P = np.empty_like(covs)
-        for j in range(count):
-            if cbar[j] > 0.0:
-                weights = matrix[:, j] * mu / cbar[j]           # ω_ij = Π_ij μ_i / c̄_j
-            else:  # unreachable mode: keep its own estimate (its probability is 0)
-                weights = np.zeros(count)
-                weights[j] = 1.0
-            xs, Ps = self._entering(j, means, covs, weights)
-            mixed_x[j], mixed_P[j] = combine(xs, Ps, weights)  # x0_j, P0_j
+        if 0.0 in cbar.tolist():  # an unreachable mode keeps its own estimate (c̄_j = 0)
+            reachable = np.where(cbar > 0.0, cbar, 1.0)
+            weights = matrix * mu[:, None] / reachable
+            for j in np.flatnonzero(cbar == 0.0):
+                weights[:, j] = 0.0
+                weights[j, j] = 1.0
+        else:
+            weights = matrix * mu[:, None] / cbar               # ω_ij = Π_ij μ_i / c̄_j
+        mixed_x, mixed_P = self._mixed(weights, state.means, state.covariances)
         return cbar, mixed_x, mixed_P
 
-    def _entering(self, j: int, means: np.ndarray, covs: np.ndarray, weights: np.ndarray):
-        """Return the components as they enter mode j (the entry hook for i != j)."""
+    def _mixed(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
+        """Return every mode's starting mixture (x0_j, P0_j) for mixing weights ω_ij."""
+        return imm_stack.mix(weights, *self._entered(means, covs, weights))
+
+    def _entered(self, means: np.ndarray, covs: np.ndarray, weights: np.ndarray):
+        """
+        Return the components as they enter each mode: (N, n), (N, n, n) without entry.
+
+        With the entry hook, (N, N, n) and (N, N, n, n): [j, i] is component i entering
+        mode j (itself for i = j, and where ω_ij = 0, which the mixture ignores).
+        """
         if self.entry is None:
             return means, covs
-        xs, Ps = means.copy(), covs.copy()
-        for i in range(self.mode_count):
-            if i != j and weights[i] > 0.0:
-                xs[i], Ps[i] = self.entry(j, means[i], covs[i])
+        count = self.mode_count
+        xs = np.repeat(means[None], count, axis=0)
+        Ps = np.repeat(covs[None], count, axis=0)
+        for j in range(count):
+            for i in range(count):
+                if i != j and weights[i, j] > 0.0:
+                    xs[j, i], Ps[j, i] = self.entry(j, means[i], covs[i])
         return xs, Ps
 
     def predict(self, state: IMMState, dt_s: float, u=None) -> IMMState:
         """Return the state predicted over dt_s: mixing, then each mode's prediction."""
-        dt_s = as_duration('dt_s', dt_s)
-        cbar, mixed_x, mixed_P = self.mix(state, self.transition(dt_s, state))
-        means = np.empty_like(mixed_x)
-        covs = np.empty_like(mixed_P)
+        dt_s = imm_stack.duration(dt_s)
+        cbar, mixed_x, mixed_P = self._mix(state, self._transition_matrix(dt_s, state))
+        means, covs = self._predict_modes(mixed_x, mixed_P, dt_s, u)
+        total = sum(cbar.tolist())
+        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / total))
+
+    def _predict_modes(self, means: np.ndarray, covs: np.ndarray, dt_s: float, u=None):
+        """Return each mode's own prediction of its (means[j], covs[j]) over dt_s."""
+        if self._stack is not None and u is None:
+            return imm_stack.predict(means, covs, *self._matrices(dt_s))
+        predicted_x = np.empty_like(means)
+        predicted_P = np.empty_like(covs)
         for j, mode in enumerate(self.modes):
-            means[j], covs[j] = mode.predict(mixed_x[j], mixed_P[j], dt_s, u)
-        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / cbar.sum()))
+            predicted_x[j], predicted_P[j] = mode.predict(means[j], covs[j], dt_s, u)
+        return predicted_x, predicted_P
+
+    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the stacked, checked F(dt_s), Q(dt_s) and F(dt_s)ᵀ of the modes."""
+        return self._stack.matrices(dt_s)
 
     def predict_ahead(self, state: IMMState, dt_s: float, u=None
                       ) -> Tuple[np.ndarray, np.ndarray]:
@@ -261,6 +322,8 @@ class IMM:
         ẑ = Σ c̄_j ẑ_j, S = Σ c̄_j (S_j + (ẑ_j - ẑ)(ẑ_j - ẑ)ᵀ), NIS = yᵀ S⁻¹ y, and the
         gain P_xz S⁻¹, so that a χ² gate treats the IMM like one filter.
         """
+        if self._stack is not None:
+            return self._update_stacked(state, z, R)
         prior_mu = state.probabilities
         means = np.empty_like(state.means)
         covs = np.empty_like(state.covariances)
@@ -270,12 +333,22 @@ class IMM:
                 state.means[j], state.covariances[j], z, R)
             results.append(result)
         logs = np.array([log_likelihood(result) for result in results])
-        with np.errstate(divide='ignore'):
-            weights = np.log(prior_mu) + logs                  # log(c̄_j Λ_j)
-        weights = np.exp(weights - np.max(weights))
-        posterior = weights / weights.sum()                    # μ_j = c̄_j Λ_j / Σ
+        posterior = imm_stack.posterior(prior_mu, logs)        # μ_j = c̄_j Λ_j / Σ
         new_state = IMMState(_read_only(means), _read_only(covs), _read_only(posterior))
         return new_state, self._mixture_innovation(state, results)
+
+    def _update_stacked(self, state: IMMState, z, R) -> Tuple[IMMState, UpdateResult]:
+        """Do :meth:`update` on the stack: every mode a LinearModel measuring a scalar."""
+        stack = self._stack
+        z = _measurement(z)
+        R = stack.R if R is None else stack.noise(_variance(R))
+        result = imm_stack.update(state.means, state.covariances, z, stack.H, R,
+                                  stack.identity, stack.selected)
+        posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
+        y, S, nis, gain = imm_stack.mixture_innovation(state.probabilities, state.means, result)
+        new_state = IMMState(_read_only(result.means), _read_only(result.covariances),
+                             _read_only(posterior))
+        return new_state, UpdateResult(np.array([y]), np.array([[S]]), nis, gain[:, None])
 
     @staticmethod
     def _mixture_innovation(prior: IMMState, results) -> UpdateResult:
@@ -334,15 +407,22 @@ class IMMFilter:
         """Return the whole (immutable) state."""
         return self._state
 
+    def _estimate(self) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) of the state, computed once per state."""
+        kept = getattr(self, '_estimated', None)
+        if kept is None or kept[0] is not self._state:
+            kept = self._estimated = (self._state,) + tuple(self.imm.estimate(self._state))
+        return kept[1], kept[2]
+
     @property
     def mean(self) -> np.ndarray:
-        """Return the combined mean."""
-        return self.imm.estimate(self._state)[0]
+        """Return the combined mean, a new array."""
+        return self._estimate()[0].copy()
 
     @property
     def covariance(self) -> np.ndarray:
-        """Return the combined covariance."""
-        return self.imm.estimate(self._state)[1]
+        """Return the combined covariance, a new array."""
+        return self._estimate()[1].copy()
 
     x = mean
     P = covariance

@@ -44,8 +44,10 @@ from dataclasses import asdict, dataclass
 import math
 from typing import Dict, Tuple
 
-from kf_train.filters.imm import combine, IMM, IMMFilter, IMMState, RateTransition
+from kf_train.filters import imm_stack
+from kf_train.filters.imm import IMM, IMMFilter, IMMState, RateTransition
 from kf_train.filters.models import LinearModel
+from kf_train.filters.rail_stop import StopFinder
 from kf_train.filters.validation import as_duration
 import numpy as np
 
@@ -278,17 +280,87 @@ class RailModel(IMM):
         self._rates = RateTransition(parameters.rates())
         super().__init__((_stand_model(parameters), moving, moving, moving), self._transition,
                          MODE_NAMES, self.entry)
+        self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
+        self._entry = _entry_transformation(parameters)
+        self._per_dt: Dict[float, tuple] = {}
+
+    def _slow(self, state: IMMState) -> float:
+        """Return P(v <= stop_speed_mps) under the brake regime's estimate."""
+        params = self.parameters
+        v = float(state.means[BRAKE, 1])
+        std = math.sqrt(max(float(state.covariances[BRAKE, 1, 1]), 0.0))
+        return (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
+            _normal_cdf((params.stop_speed_mps - v) / std)
 
     def _transition(self, dt_s: float, state: IMMState) -> np.ndarray:
         """Return Π(dt): the fixed rates plus brake -> stand, scaled by P(v <= stop speed)."""
-        params = self.parameters
         rates = self._rates.rates.copy()
-        v = state.means[BRAKE, 1]
-        std = math.sqrt(max(state.covariances[BRAKE, 1, 1], 0.0))
-        slow = (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
-            _normal_cdf((params.stop_speed_mps - v) / std)
-        rates[BRAKE, STAND] = params.stop_rate_hz * slow
+        rates[BRAKE, STAND] = self.parameters.stop_rate_hz * self._slow(state)
         return self._rates.matrix(dt_s, rates)
+
+    def _for_dt(self, dt_s: float) -> tuple:
+        """Return (F, Q, Fᵀ, Π without brake -> stand) for dt_s, computed once per dt_s."""
+        kept = self._per_dt.get(dt_s)
+        if kept is None:
+            matrix = self._rates.matrix(dt_s)
+            matrix.flags.writeable = False
+            if len(self._per_dt) >= _CACHE_SIZE:
+                self._per_dt.pop(next(iter(self._per_dt)))
+            kept = self._per_dt[dt_s] = self._stack.matrices(dt_s) + (matrix,)
+        return kept
+
+    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the regimes' stacked F(dt_s), Q(dt_s) and F(dt_s)ᵀ."""
+        return self._for_dt(dt_s)[:3]
+
+    def _transition_matrix(self, dt_s: float, state: IMMState) -> np.ndarray:
+        """
+        Return :meth:`_transition`'s Π(dt), stochastic by construction (not re-checked).
+
+        Only the brake row depends on the state; the others are kept per dt.
+        """
+        rates = self._rates.rates[BRAKE].tolist()
+        rates[STAND] = self.parameters.stop_rate_hz * self._slow(state)
+        leave = sum(rates)                                     # r_i
+        stay = math.exp(-leave * dt_s)                         # Π_ii = e^(-r_i dt)
+        # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
+        row = [(1.0 - stay) * (r / leave) if leave > 0.0 else 0.0 for r in rates]
+        row[BRAKE] = stay
+        matrix = self._for_dt(dt_s)[3].copy()
+        matrix[BRAKE] = row
+        return matrix
+
+    def _mixed(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
+        """
+        Return every regime's starting mixture, components entering it by :meth:`entry`.
+
+        x0_j = Σ_i ω_ij x_ji, P0_j = Σ_i ω_ij (P_ji + d dᵀ), d = x_ji - x0_j, where
+        (x_ji, P_ji) is component i as it enters regime j: x' = T_j x, P' = T_j P Tⱼᵀ + W_j
+        for i ≠ j, itself for i = j. T_j is the identity but for ℓ's row (A's, -B's or
+        none), so x_ji and P_ji differ from x_i, P_i only in ℓ's entry, row and column,
+        which are products with one nonzero term (exact, as entry's copies are): only
+        those are formed, not N² covariances.
+        """
+        count, n = means.shape
+        rows, squares, noise = self._entry
+        columns = weights.T                                    # [j, i] = ω_ij
+        diagonal = slice(None, None, count + 1)               # the pairs j = i of [j, i]
+        xs = np.empty((count, count, n))
+        xs[:] = means
+        xs[:, :, 3] = rows.dot(means.T)                        # ℓ_ji = T_j's row ℓ · x_i
+        xs.reshape(count * count, n)[diagonal, 3] = means[:, 3]
+        x0 = np.matmul(columns[:, None, :], xs).reshape(count, n)          # Σ_i ω_ij x_ji
+        flat = covs.reshape(count, n * n)
+        ell = np.dot(rows, covs)                               # row ℓ of T_j P_i (N, N, n)
+        ell[:, :, 3] = squares.dot(flat[:, ::n + 1].T) + noise  # Var(A or B) + w_j
+        ell.reshape(count * count, n)[diagonal] = covs[:, 3, :]
+        spread = columns.dot(flat).reshape(count, n, n)        # Σ_i ω_ij P_i
+        row = np.matmul(columns[:, None, :], ell).reshape(count, n)       # … its row ℓ
+        spread[:, 3, :] = row
+        spread[:, :, 3] = row
+        d = xs - x0[:, None, :]                                # d_ji = x_ji - x0_j
+        P0 = spread + np.matmul((columns[:, :, None] * d).swapaxes(1, 2), d)
+        return x0, imm_stack.symmetrised(P0)
 
     def entry(self, j: int, x: np.ndarray, P: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """
@@ -330,60 +402,43 @@ class RailModel(IMM):
         mean of a moving regime is held where its path stops (:meth:`_no_reversal`);
         x = Σ μ_j x_j⁺, P = Σ μ_j (P_j⁺ + (x_j⁺ - x)(x_j⁺ - x)ᵀ).
         """
-        dt_s = as_duration('dt_s', dt_s)
-        means = np.empty_like(state.means)
-        covs = np.empty_like(state.covariances)
-        for j, mode in enumerate(self.modes):
-            means[j], covs[j] = mode.predict(state.means[j], state.covariances[j], dt_s, u)
-            if j != STAND:
-                means[j] = self._no_reversal(state.means[j], means[j], dt_s)
-        return combine(means, covs, state.probabilities)
-
-    def _horizon_phi(self, dt_s: float) -> Tuple[float, float, float]:
-        """Return (φ1, φ2, φ3) at x = dt_s/τ, remembered for the last dt_s."""
-        if getattr(self, '_phi_cache', (None,))[0] != dt_s:
-            values = _phi(np.array([dt_s / self.parameters.response_time_s]))
-            self._phi_cache = (dt_s, tuple(float(v[0]) for v in values))
-        return self._phi_cache[1]
+        dt_s = imm_stack.duration(dt_s)
+        if u is not None:
+            raise ValueError('u given to a model without control input')
+        means, covs = imm_stack.predict(state.means, state.covariances, *self._matrices(dt_s),
+                                        final=False)
+        starts = state.means[:, :4].tolist()
+        for j in (ACCELERATE, CRUISE, BRAKE):
+            held = self._stops.hold(starts[j], means[j], dt_s)
+            if held is not means[j]:
+                means[j] = held
+        x, P = imm_stack.combine(means, covs, state.probabilities)
+        imm_stack.check_finite(x, P, 'prediction')
+        return x, P
 
     def _no_reversal(self, start: np.ndarray, predicted: np.ndarray,
                      dt_s: float) -> np.ndarray:
-        """
-        Return the predicted mean with the train held where its mean velocity reaches 0.
+        """Return the predicted mean held where its mean velocity reaches 0 (StopFinder)."""
+        return self._stops.hold(start, predicted, dt_s)
 
-        The mean path from ``start`` (velocity clipped at 0) is v(t) = v + τφ1 a + τφ2 ℓ.
-        If it reaches 0 within dt_s, the first root is bracketed on a 40-step grid,
-        then on a 40-step grid within that step (to dt_s/1600), and the train stands
-        from then on (v = a = 0) at the position it reached.
-        """
-        p, v, a, command = start[:4]
-        tau = self.parameters.response_time_s
-        if v >= 0.0:
-            # φ1, φ2 grow with t, so v(t) >= v + τ φ1(T/τ) min(a, 0) + τ φ2(T/τ) min(ℓ, 0):
-            # if that is positive the mean path never stops and the prediction stands.
-            phi1, phi2, _ = self._horizon_phi(dt_s)
-            if v + tau * (phi1 * min(a, 0.0) + phi2 * min(command, 0.0)) > 0.0:
-                return predicted
-        state = np.array([p, max(v, 0.0), a, command])
-        low, high = 0.0, dt_s
-        for _ in range(2):
-            grid = np.linspace(low, high, 41)
-            path = relaxation_transition(grid, tau).dot(state)       # (41, 4) mean path
-            below = np.nonzero(path[:, 1] <= 0.0)[0]
-            if below.size == 0:
-                if v >= 0.0:
-                    return predicted
-                held = predicted.copy()  # started below 0: follow the clipped path
-                held[:3] = path[-1, :3]
-                return held
-            high = grid[below[0]]
-            if below[0] == 0:
-                break  # standing with a <= 0 already: it stays where it is
-            low = grid[below[0] - 1]
-        stop = relaxation_transition(high, tau)[0].dot(state)
-        held = predicted.copy()
-        held[0], held[1], held[2] = max(stop[0], p), 0.0, 0.0
-        return held
+
+def _entry_transformation(params: RailModelParameters):
+    """
+    Return (rows, rows², W (4, 1)) of :meth:`RailModel.entry` for the four regimes.
+
+    Entering regime j is x' = T_j x + w, w ~ N(0, W_j): T_j is the identity with ℓ's
+    row replaced by ``rows[j]``, A's (accelerate), -B's (brake) or zeros (cruise,
+    stand); W_j = ``noise[j]`` is ℓ's new variance (plateau_std², cruise_std² or 0).
+    """
+    rows = np.zeros((4, DIM_X))
+    rows[ACCELERATE, 4] = 1.0                                  # ℓ = A + w
+    rows[BRAKE, 5] = -1.0                                      # ℓ = -B + w
+    noise = np.array([[0.0], [params.plateau_std_mps2 ** 2], [params.cruise_std_mps2 ** 2],
+                      [params.plateau_std_mps2 ** 2]])
+    arrays = (rows, rows * rows, noise)
+    for array in arrays:
+        array.flags.writeable = False
+    return arrays
 
 
 def make_rail_filter(position_m: float, parameters: RailModelParameters = None,

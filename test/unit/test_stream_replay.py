@@ -274,16 +274,23 @@ def test_parquet_in_and_out_hold_the_same_doubles(tmp_path, objects):
         assert pl.read_parquet(tmp_path / dst).equals(blocked)
 
 
-@pytest.mark.parametrize('cell, message', [
-    ('nan', "row 3, column 'z_position': empty or non-finite value"),
-    (None, "row 3, column 'z_position': empty or non-finite value"),
+@pytest.mark.parametrize('column, cell, message', [
+    ('z_position', 'nan', "row 3, column 'z_position': non-finite value"),
+    ('z_position', 'inf', "row 3, column 'z_position': non-finite value"),
+    ('t', None, "row 3, column 't': empty or non-finite value"),
 ])
-def test_parquet_errors_name_the_row(tmp_path, capsys, cell, message):
-    """Bad Parquet cells and missing columns: one line naming the row, exit 1, no file."""
+def test_parquet_errors_name_the_row(tmp_path, capsys, column, cell, message):
+    """
+    Bad Parquet cells and missing columns: one line naming the row, exit 1, no file.
+
+    A null measurement is a row without one (test_replay_gaps.py); NaN is refused.
+    """
     pl = pytest.importorskip('polars')
     source, target = tmp_path / 'in.parquet', tmp_path / 'out.parquet'
     value = float(cell) if cell else None
-    pl.DataFrame({'t': [0.1, 0.2, 0.3], 'z_position': [1.0, 2.0, value]}).write_parquet(source)
+    data = {'t': [0.1, 0.2, 0.3], 'z_position': [1.0, 2.0, 3.0]}
+    data[column][2] = value
+    pl.DataFrame(data).write_parquet(source)
     assert main(['--preset', 'train', str(source), '-o', str(target)]) == 1
     err = capsys.readouterr().err
     assert f'{source} {message}' in err and err.count('\n') == 1, err
