@@ -10,18 +10,21 @@ pair, so it needs models without state of their own. :func:`make_model` picks on
   to rounding, ~4x cheaper);
 * the UKF's unscented transform of either;
 * a particle filter (``pf``: the regularised one; ``bootstrap-pf``) whose particles
-  stay behind each mean it returns (:class:`_ParticleModel`).
+  stay behind each mean it returns (:class:`_ParticleModel`);
+* the rail preset's IMM, whose whole state stays behind each mean it returns
+  (:class:`~kf_train.estimator.imm_model.IMMModel`).
 """
 
 import math
-from typing import Callable, Dict, Optional, Tuple
+from typing import Callable, Dict, Optional, Tuple, Union
 import weakref
 
+from kf_train.estimator.imm_model import IMMModel
 from kf_train.filters import (
     closed_form, constant_velocity_model, LinearModel, PARTICLE_KINDS, ParticleFilter,
     RegularisedParticleFilter, UnscentedModel, UpdateResult, white_noise_terms,
     WhiteNoiseAcceleration)
-from kf_train.presets import Preset
+from kf_train.presets import Preset, RailPreset
 import numpy as np
 
 # Distinct dt values whose F, Q and B a preset model keeps computed.
@@ -202,17 +205,23 @@ class _ParticleModel:
         return x, P, result
 
 
-def make_model(settings, preset: Preset, particle_states: Optional[Dict[int, object]] = None,
-               fast: bool = True):
+def make_model(settings, preset: Union[Preset, RailPreset],
+               particle_states: Optional[Dict[int, object]] = None, fast: bool = True):
     """
     Return the filter's pure model: the preset's, plus white-noise acceleration q if set.
 
-    ``settings`` are validated :class:`~kf_train.estimator.EstimatorSettings`. ``kf``
+    ``settings`` are validated :class:`~kf_train.estimator.EstimatorSettings`. The rail
+    preset is an :class:`IMMModel` (keeping its states in ``particle_states``). ``kf``
     and ``ekf`` (an EKF of a linear model is the KF) use the linear model itself,
     ``ukf`` its unscented transform, ``pf`` and ``bootstrap-pf`` a
     :class:`_ParticleModel` on it (keeping its particles in ``particle_states``). With
     ``fast``, the train's KF is :class:`_FastTrainModel`, its closed form.
     """
+    if isinstance(preset, RailPreset):
+        # The IMM of four Kalman filters (settings allow only kf/ekf for it); its
+        # states are kept with the particle filters' (both keyed by a mean's id).
+        return IMMModel(preset.model(), preset.H, preset.R, preset.state_names,
+                        states=particle_states)
     q = settings.process_noise_density
     if settings.preset == 'train':
         # Seed 000's model exactly as before presets: F(dt), Q(dt) = q·[...], H = [1, 0].

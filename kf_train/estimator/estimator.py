@@ -4,9 +4,20 @@ The live estimator as a pure state machine: stamped measurements and controls in
 It runs any 1-D preset of :mod:`kf_train.presets.loader` on a stream (``preset``:
 ``train`` by default, ``car``, ``car-exact``, ``robot``, ``robot-exact``,
 ``cv-position``, ``cv-position-velocity``, or the path of a preset YAML file of the
-same shape; see :func:`check_live_preset`). The preset brings the model, the initial
-state and covariance, the nominal period and the horizon; a setting that is not None
-overrides the preset's value.
+same shape; see :func:`check_live_preset`), and the rail preset (``rail``: a train
+in four regimes, stand/accelerate/cruise/brake, as an IMM; docs/rail.md). The preset
+brings the model, the initial state and covariance, the nominal period and the
+horizon; a setting that is not None overrides the preset's value.
+
+The rail preset's IMM (:class:`~kf_train.estimator.imm_model.IMMModel`) keeps its
+whole state (per-regime means, covariances, probabilities) behind every (x, P) it
+returns, as the particle filter keeps its particles: x and P are the mixture's
+moments, rewinds and replays repeat the IMM's steps bit for bit, the χ² gate judges
+the mixture's innovation, and the prediction ``horizon_s`` ahead is the mixture of
+each regime's own prediction (a train never reverses in it).
+:meth:`StreamEstimator.mode_probabilities` gives the regime probabilities. An (x, P)
+the IMM did not produce (``set_state``, an initialisation) starts every regime at
+(x, P) with equal probabilities.
 
 The filter (``filter``, fixed for the estimator's life like the preset) is ``kf``
 (default), ``ekf`` (the KF on these linear presets), ``ukf``, ``pf`` (the regularised
@@ -32,7 +43,9 @@ Initialisation:
   the initial state with a standard deviation of ``first_velocity_std_mps``, so the
   filter converges within a few samples even when it joins a train that is far down
   the track. (With Q = 0 the seed's prior would lock the filter onto its wrong
-  initial velocity.)
+  initial velocity.) The rail preset takes the other states' variances from its
+  initial covariance instead (its priors: velocity 20 m/s, acceleration 1 m/s², the
+  capabilities A and B), all regimes equally likely.
 
 Controls (presets with a control input: ``car``, acceleration [m/s²]; ``robot``,
 velocity [m/s]), fed by :meth:`StreamEstimator.add_control`:
@@ -166,6 +179,20 @@ class StreamEstimator:
         if self._fusion.x is None:
             return None
         return self._fusion.x.copy(), self._fusion.P.copy()
+
+    def mode_probabilities(self) -> Optional[Tuple[Tuple[str, ...], np.ndarray]]:
+        """
+        Return (mode names, probabilities) of the current state, or None.
+
+        For the rail preset (an IMM): its regimes (stand, accelerate, cruise, brake)
+        and their probabilities after the newest fused measurement (a new array,
+        summing to 1). None for the other presets, and before the first measurement.
+        """
+        fusion = self._fusion
+        probabilities = getattr(self.model, 'mode_probabilities', None)
+        if probabilities is None or fusion.x is None:
+            return None
+        return self.model.imm.mode_names, probabilities(fusion.x, fusion.P)
 
     @property
     def gate_threshold(self) -> float:

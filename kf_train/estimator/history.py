@@ -113,9 +113,10 @@ def initial_state(config, controls: Optional[Controls], locked_out: bool, stamp_
         x, P, result = model.update(x, P, z, R)
         return x, P, result, u, exact
     # Measured states from the measurement, the others from the initial state with
-    # the wide first_velocity_std_mps.
+    # their first_measurement variances (the wide first_velocity_std_mps; the rail
+    # preset's priors).
     x = config.initial_state.copy()
-    variances = [config.settings.first_velocity_std_mps ** 2] * x.shape[0]
+    variances = list(config.unmeasured_variances)
     for i, j in enumerate(config.selector):
         x[j] = z[i]
         variances[j] = R[i, i]

@@ -4,14 +4,22 @@ Which presets the live estimator runs, and what a preset contributes to its sett
 A preset is named (a shipped one) or given as the path of a YAML file; files are read
 again only when they change. :func:`resolve_preset` raises ``ValueError`` naming
 ``preset`` for anything the live estimator cannot run (:func:`check_live_preset`).
+Besides the 1-D linear presets it runs the rail preset (``rail``, or a YAML file with
+``model: rail_regimes``): a :class:`~kf_train.presets.RailPreset`, the four-regime IMM
+of docs/rail.md.
 """
 
 import os
-from typing import Dict, Optional, Sequence, Tuple
+from typing import Dict, Optional, Sequence, Tuple, Union
 
 from kf_train.filters import as_covariance, as_vector
-from kf_train.presets import load_preset, load_preset_file, Preset, PRESET_NAMES
+from kf_train.presets import (
+    is_rail_preset_file, load_preset, load_preset_file, load_rail_preset, Preset, PRESET_NAMES,
+    RAIL_PRESET_NAME, RailPreset)
 import numpy as np
+
+LivePreset = Union[Preset, RailPreset]
+"""What the live estimator runs: a linear 1-D preset or the rail preset."""
 
 LIVE_STATES = (('position', 'velocity'), ('position',))
 """State names a live preset may have: 1-D constant velocity, or position alone."""
@@ -19,11 +27,13 @@ LIVE_MEASUREMENTS = (('position',), ('position', 'velocity'))
 """Measurement names a live preset may have."""
 LIVE_CONTROLS = ((), ('acceleration',), ('velocity',))
 """Control names a live preset may have (at most one: acceleration or velocity)."""
-LIVE_PRESETS = ('train', 'car', 'car-exact', 'robot', 'robot-exact', 'cv-position',
+LIVE_PRESETS = ('rail', 'train', 'car', 'car-exact', 'robot', 'robot-exact', 'cv-position',
                 'cv-position-velocity')
 """The shipped presets the live estimator runs (range-bearing is 2-D: offline only)."""
+LINEAR_LIVE_PRESETS = LIVE_PRESETS[1:]
+"""Those that are one linear model (every filter kind runs them): all but rail."""
 
-_PRESET_CACHE: Dict[Tuple[str, int], Preset] = {}
+_PRESET_CACHE: Dict[Tuple[str, int], LivePreset] = {}
 
 
 def covariance_from_list(name: str, values: Sequence[float], dim: int) -> np.ndarray:
@@ -46,17 +56,18 @@ def covariance_to_list(P: np.ndarray) -> Tuple[float, ...]:
     return tuple(float(v) for v in P.ravel())
 
 
-def resolve_preset(spec: str) -> Preset:
+def resolve_preset(spec: str) -> LivePreset:
     """
     Return the preset ``spec`` names: a shipped one, or a YAML file (a path).
 
-    A value ending in .yaml/.yml or containing a path separator is a file. Files are
-    read again only when they change. Raises ValueError naming ``preset``.
+    A value ending in .yaml/.yml or containing a path separator is a file; one with
+    ``model: rail_regimes`` is read as a rail preset. Files are read again only when
+    they change. Raises ValueError naming ``preset``.
     """
     if not isinstance(spec, str) or not spec:
         raise ValueError(f'preset must be a preset name or a YAML file, got {spec!r}')
     is_file = spec.endswith(('.yaml', '.yml')) or os.sep in spec or '/' in spec
-    if not is_file and spec not in PRESET_NAMES:
+    if not is_file and spec not in PRESET_NAMES + (RAIL_PRESET_NAME,):
         raise ValueError(f"preset must be one of {', '.join(LIVE_PRESETS)} or the path of a "
                          f'preset YAML file, got {spec!r}')
     try:
@@ -65,7 +76,7 @@ def resolve_preset(spec: str) -> Preset:
         raise ValueError(f'preset must be a readable file: {spec}: {error.strerror}') from None
     if key not in _PRESET_CACHE:
         try:
-            preset = load_preset_file(spec) if is_file else load_preset(spec)
+            preset = _load(spec, is_file)
         except ValueError as error:
             raise ValueError(f'preset must be a valid preset file: {error}') from None
         check_live_preset(preset)
@@ -75,15 +86,27 @@ def resolve_preset(spec: str) -> Preset:
     return _PRESET_CACHE[key]
 
 
-def check_live_preset(preset: Preset) -> None:
+def _load(spec: str, is_file: bool) -> LivePreset:
+    """Return the preset of a name or a file (a rail preset by name or by its model key)."""
+    if spec == RAIL_PRESET_NAME:
+        return load_rail_preset()
+    if not is_file:
+        return load_preset(spec)
+    return load_rail_preset(spec) if is_rail_preset_file(spec) else load_preset_file(spec)
+
+
+def check_live_preset(preset: LivePreset) -> None:
     """
     Raise ValueError unless the live estimator can run ``preset``.
 
-    It needs a linear model of a 1-D position (states [position, velocity] or
-    [position]), measuring the position (and optionally the velocity), with at most
-    one control named acceleration [m/s²] or velocity [m/s], and with process noise
-    that does not depend on the dt's history (any preset file qualifies).
+    A rail preset runs (it is checked when read). Any other needs a linear model of
+    a 1-D position (states [position, velocity] or [position]), measuring the
+    position (and optionally the velocity), with at most one control named
+    acceleration [m/s²] or velocity [m/s], and with process noise that does not
+    depend on the dt's history (any preset file qualifies).
     """
+    if isinstance(preset, RailPreset):
+        return
     problems = []
     if not preset.linear:
         problems.append('its measurement model is not linear')
@@ -113,15 +136,20 @@ def preset_defaults(spec: str) -> Dict[str, object]:
     }
 
 
-def is_constant_velocity(preset: Preset) -> bool:
+def is_rail(preset: LivePreset) -> bool:
+    """Return whether ``preset`` is a rail preset (an IMM of regimes)."""
+    return isinstance(preset, RailPreset)
+
+
+def is_constant_velocity(preset: LivePreset) -> bool:
     """Return whether the preset's states are [position, velocity] with F = [[1, dt], [0, 1]]."""
     return (preset.state_names == ('position', 'velocity')
             and np.array_equal(preset.dynamics.A, [[0.0, 1.0], [0.0, 0.0]]))
 
 
-def measured_states(preset: Preset) -> Optional[Tuple[int, ...]]:
+def measured_states(preset: LivePreset) -> Optional[Tuple[int, ...]]:
     """Return, per measurement, the state it measures (H a selection), or None."""
-    H = preset.model.H
+    H = preset.H if isinstance(preset, RailPreset) else preset.model.H
     indices = []
     for row in H:
         hits = np.flatnonzero(row)

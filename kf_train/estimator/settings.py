@@ -12,15 +12,17 @@ from typing import Callable, Dict, NamedTuple, Optional, Tuple
 
 from kf_train.estimator.adapters import make_model
 from kf_train.estimator.live_presets import (
-    covariance_from_list, is_constant_velocity, measured_states, preset_defaults,
-    resolve_preset)
+    covariance_from_list, is_constant_velocity, is_rail, LivePreset, measured_states,
+    preset_defaults, resolve_preset)
 from kf_train.filters import (
     as_finite_array, as_vector, chi2_quantile, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
     DEFAULT_PARTICLES, DEFAULT_RESAMPLE_THRESHOLD, FILTER_KINDS, seconds_to_ns)
-from kf_train.presets import Preset
 import numpy as np
 
 INITIALIZATIONS = ('first_measurement', 'prior')
+RAIL_FILTER_KINDS = ('kf', 'ekf')
+"""The filter kinds the rail preset runs: its IMM of four Kalman filters (the regimes are
+linear, so the EKF is the same); the UKF and the particle filters are refused."""
 
 # Ranges shared with the node's parameter descriptors.
 GATE_PROBABILITY_RANGE = (0.5, 1.0)
@@ -83,7 +85,8 @@ class EstimatorSettings:
     nominal_period_s: Optional[float] = None
     """Prior mode: how long before the first stamp the prior holds; None: the preset's."""
     first_velocity_std_mps: float = 100.0
-    """first_measurement mode: standard deviation of the initial velocity."""
+    """first_measurement mode: standard deviation of the initial velocity (not used by
+    the rail preset, whose initial covariance holds its priors: 20 m/s)."""
     history_s: float = 0.0
     """Out-of-sequence window [s]: older measurements are fused by replay; 0 = off."""
     gate_probability: float = 1.0
@@ -97,13 +100,15 @@ class EstimatorSettings:
     expected_frame_id: str = ''
     """The measurements' required frame_id; '' accepts any."""
     preset: str = 'train'
-    """The filter: a name from LIVE_PRESETS or the path of a preset YAML file."""
+    """The filter: a name from LIVE_PRESETS (``rail``: the four-regime IMM of
+    docs/rail.md) or the path of a preset YAML file."""
     measurement_velocity_variance: float = 0.0
     """R of a measured velocity [m²/s²] overriding the message's; 0 uses the message's."""
     filter: str = 'kf'  # noqa: A003 (the node parameter's name)
     """The filter kind (:data:`kf_train.filters.FILTER_KINDS`): ``kf`` (exact, the
     default), ``ekf`` (the same on these linear presets), ``ukf``, ``pf`` (regularised)
-    or ``bootstrap-pf``."""
+    or ``bootstrap-pf``. With preset ``rail``, ``kf`` and ``ekf`` are its IMM of four
+    Kalman filters (:data:`RAIL_FILTER_KINDS`); the others raise ValueError."""
     ukf_alpha: float = DEFAULT_ALPHA
     """UKF sigma-point spread α > 0."""
     ukf_beta: float = DEFAULT_BETA
@@ -148,8 +153,13 @@ class EstimatorSettings:
         self._validate_ranges()
         return self
 
-    def _validate_model(self, preset: Preset) -> None:
+    def _validate_model(self, preset: LivePreset) -> None:
         """Check the settings that must suit the preset's model."""
+        if is_rail(preset) and self.filter not in RAIL_FILTER_KINDS:
+            raise ValueError(
+                f'filter must be kf (or ekf, the same) for preset {preset.name!r}, got '
+                f'{self.filter!r}: the rail preset is an IMM of four Kalman filters, one per '
+                'regime; ukf, pf and bootstrap-pf run the 1-D linear presets')
         if self.process_noise_density > 0.0 and not is_constant_velocity(preset):
             raise ValueError(
                 f'process_noise_density must be 0 for preset {preset.name!r}: a white-noise '
@@ -193,7 +203,7 @@ class Configuration(NamedTuple):
     """Validated settings and everything derived from them, installed at once."""
 
     settings: EstimatorSettings
-    preset: Preset
+    preset: LivePreset
     model: object
     """The filter's pure ``predict(x, P, dt, u)``/``update(x, P, z, R)`` model."""
     predict_ahead: Callable
@@ -209,6 +219,10 @@ class Configuration(NamedTuple):
     horizon_ns: int
     nominal_ns: int
     gate_threshold: float
+    unmeasured_variances: Tuple[float, ...]
+    """first_measurement mode: the initial variance of each state (measured ones are
+    replaced by R): first_velocity_std_mps² for the linear presets, the diagonal of the
+    initial covariance (its priors) for the rail preset."""
 
 
 def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings],
@@ -245,4 +259,6 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
         initial_state, initial_covariance, nominal_period_s, horizon_s,
         measured_states(preset), seconds_to_ns(settings.history_s),
         seconds_to_ns(settings.max_future_s), seconds_to_ns(horizon_s),
-        seconds_to_ns(nominal_period_s), chi2_quantile(settings.gate_probability, model.dim_z))
+        seconds_to_ns(nominal_period_s), chi2_quantile(settings.gate_probability, model.dim_z),
+        tuple(float(v) for v in np.diag(initial_covariance)) if is_rail(preset)
+        else (settings.first_velocity_std_mps ** 2,) * preset.dim_x)

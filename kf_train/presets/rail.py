@@ -18,18 +18,29 @@ here. Every key is checked and named in errors, as the preset loader does:
 
 import math
 import os
-from typing import Any, Mapping, NamedTuple, Optional
+from typing import Any, Mapping, NamedTuple, Optional, Tuple
 
-from kf_train.filters import MODE_NAMES, RailModelParameters, STATE_NAMES
+from kf_train.filters import MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES
 from kf_train.presets.loader import PRESET_DIR
+import numpy as np
 
+RAIL_PRESET_NAME = 'rail'
 RAIL_PRESET_PATH = os.path.join(PRESET_DIR, 'rail.yaml')
+RAIL_MODEL_KEY = 'rail_regimes'
+"""The value of ``model`` that marks a YAML file as a rail preset."""
 _KEYS = {'name', 'description', 'notes', 'filter', 'model', 'states', 'measurements', 'modes',
          'R', 'nominal_period_s', 'horizon_s', 'parameters'}
 
 
 class RailPreset(NamedTuple):
-    """The rail preset as read from its file."""
+    """
+    The rail preset as read from its file.
+
+    Besides its fields it answers what the tools ask a linear
+    :class:`~kf_train.presets.Preset` (state, measurement and control names and
+    counts, initial state and covariance, CSV columns), so the streaming estimator
+    and the replay treat both alike; :meth:`model` builds the IMM.
+    """
 
     name: str
     description: str
@@ -37,6 +48,82 @@ class RailPreset(NamedTuple):
     nominal_period_s: float
     horizon_s: Optional[float]
     source: str
+
+    linear = False
+    """The motion is a mixture of regimes, not one linear model."""
+    seed = ''
+    """Not a seed tutorial."""
+    notes = 'docs/rail.md'
+
+    @property
+    def state_names(self) -> Tuple[str, ...]:
+        """Return [position, velocity, acceleration, commanded, capabilities A and B]."""
+        return STATE_NAMES
+
+    @property
+    def measurement_names(self) -> Tuple[str, ...]:
+        """Return ('position',)."""
+        return ('position',)
+
+    @property
+    def control_names(self) -> Tuple[str, ...]:
+        """Return () (no control input)."""
+        return ()
+
+    @property
+    def mode_names(self) -> Tuple[str, ...]:
+        """Return the regimes: stand, accelerate, cruise, brake."""
+        return MODE_NAMES
+
+    @property
+    def dim_x(self) -> int:
+        """Return the number of states (6)."""
+        return len(STATE_NAMES)
+
+    @property
+    def dim_z(self) -> int:
+        """Return 1 (the position)."""
+        return 1
+
+    @property
+    def dim_u(self) -> int:
+        """Return 0."""
+        return 0
+
+    @property
+    def H(self) -> np.ndarray:
+        """Return the measurement matrix [1, 0, 0, 0, 0, 0] (a new array)."""
+        H = np.zeros((1, len(STATE_NAMES)))
+        H[0, 0] = 1.0
+        return H
+
+    @property
+    def R(self) -> np.ndarray:
+        """Return the default position variance [[σ²]] (a new array)."""
+        return np.array([[self.parameters.noise_std_m ** 2]])
+
+    @property
+    def initial_state(self) -> np.ndarray:
+        """Return [0, 0, 0, 0, A, B]: standing at 0 with the prior capabilities."""
+        params = self.parameters
+        return np.array([0.0, 0.0, 0.0, 0.0, params.accelerate_mps2, params.brake_mps2])
+
+    @property
+    def initial_covariance(self) -> np.ndarray:
+        """Return the covariance at a first position fix of variance σ² (its priors)."""
+        return self.parameters.initial_covariance(self.parameters.noise_std_m ** 2)
+
+    def measurement_columns(self) -> Tuple[Tuple[str, ...], ...]:
+        """Return the CSV column of the measurement: (('z_position',),)."""
+        return (('z_position',),)
+
+    def control_columns(self) -> Tuple[str, ...]:
+        """Return () (no control input)."""
+        return ()
+
+    def model(self) -> RailModel:
+        """Return the four-regime IMM of these parameters."""
+        return RailModel(self.parameters)
 
 
 def load_rail_preset(path: str = RAIL_PRESET_PATH) -> RailPreset:
@@ -55,6 +142,17 @@ def load_rail_preset(path: str = RAIL_PRESET_PATH) -> RailPreset:
         raise ValueError(f'{path}: {error}') from None
 
 
+def is_rail_preset_file(path: str) -> bool:
+    """Return whether a YAML file says ``model: rail_regimes`` (False if unreadable)."""
+    import yaml
+    try:
+        with open(path, encoding='utf-8') as stream:
+            data = yaml.safe_load(stream)
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(data, Mapping) and data.get('model') == RAIL_MODEL_KEY
+
+
 def _positive(key: str, value) -> float:
     """Return a finite number > 0."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) \
@@ -70,7 +168,7 @@ def rail_preset_from_mapping(data: Mapping[str, Any], source: str = '<mapping>')
     unknown = sorted(str(k) for k in data if k not in _KEYS)
     if unknown:
         raise ValueError(f"unknown key '{unknown[0]}'; the keys are {', '.join(sorted(_KEYS))}")
-    expected = {'filter': 'imm', 'model': 'rail_regimes', 'states': list(STATE_NAMES),
+    expected = {'filter': 'imm', 'model': RAIL_MODEL_KEY, 'states': list(STATE_NAMES),
                 'measurements': ['position'], 'modes': list(MODE_NAMES)}
     for key, value in expected.items():
         if data.get(key) != value:

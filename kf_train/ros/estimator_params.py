@@ -55,9 +55,11 @@ def _integer(name, default, description, range_, **more) -> ParamSpec:
 PARAMETERS_FIXED = (
     ParamSpec(
         'preset', 'string', DEFAULT_PRESET,
-        'The filter: a seed preset (' + ', '.join(LIVE_PRESETS) + ') or the path of a preset '
-        'YAML file. It sets the model, the control topic and the defaults of initial_state, '
-        'initial_covariance, nominal_period_s and horizon_s.' + _FIXED,
+        'The filter: rail (a train in regimes stand/accelerate/cruise/brake, an IMM; for '
+        'real trains, docs/rail.md), a seed preset (' + ', '.join(LIVE_PRESETS[1:]) + ') or '
+        'the path of a preset YAML file. It sets the model, the control topic and the '
+        'defaults of initial_state, initial_covariance, nominal_period_s and horizon_s.'
+        + _FIXED,
         constraints='one of: ' + ', '.join(LIVE_PRESETS) + ', or a .yaml path', live=False,
         group=_G_FIXED),
     ParamSpec(

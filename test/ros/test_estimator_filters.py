@@ -12,7 +12,7 @@ exit 2.
 import statistics
 
 from kf_train.estimator import (
-    EstimatorSettings, LIVE_PRESETS, Rejected, resolve_preset, StreamEstimator)
+    EstimatorSettings, LINEAR_LIVE_PRESETS, Rejected, resolve_preset, StreamEstimator)
 from kf_train.filters import FILTER_KINDS, PARTICLE_KINDS
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
@@ -86,7 +86,7 @@ def _feed(estimator: StreamEstimator, stamps, z, controls, order, late_controls=
     return steps
 
 
-@pytest.mark.parametrize('preset', LIVE_PRESETS)
+@pytest.mark.parametrize('preset', LINEAR_LIVE_PRESETS)
 def test_ukf_and_ekf_equal_kf_on_every_preset(preset):
     """On linear presets the UKF and the EKF are the KF: 1e-9, replays and controls included."""
     stamps, z, controls, _ = _stream(preset, 60, 1)
@@ -113,7 +113,7 @@ def test_ukf_and_ekf_equal_kf_on_every_preset(preset):
 
 
 @pytest.mark.parametrize('kind', PARTICLE_KINDS)
-@pytest.mark.parametrize('preset', LIVE_PRESETS)
+@pytest.mark.parametrize('preset', LINEAR_LIVE_PRESETS)
 def test_pf_runs_every_preset_reproducibly(preset, kind):
     """Both particle filters run on every preset, and two runs agree bit for bit."""
     stamps, z, controls, position = _stream(preset, 40, 2)

@@ -264,7 +264,7 @@ def test_params_files_and_overrides_make_the_nodes_configuration():
     ('initialization:=bogus', 'invalid parameter: initialization must be one of '
      "first_measurement, prior, got 'bogus'"),
     ("frame_id:=''", 'invalid parameter: frame_id must not be empty'),
-    ('preset:=plane', 'invalid parameter: preset must be one of train, car, car-exact, '
+    ('preset:=plane', 'invalid parameter: preset must be one of rail, train, car, car-exact, '
      'robot, robot-exact, cv-position, cv-position-velocity or the path of a preset YAML '
      "file, got 'plane'"),
     ('horizon:=2.0', "invalid parameter: the estimator node has no parameter 'horizon' "
