@@ -23,6 +23,10 @@ Rows (``--rows``, default all that exist):
    Parquet throughput, 200 000 rows against a plain filterpy script, the fleet beside
    simdkalman at 10⁵ and 10⁶ filters, and ``--engine dask``.
 8. Live fleet capacity: one estimator per train at 10 Hz, its CPU share and memory.
+9. The rail preset (the default since issue 11): µs per measurement of the rail IMM
+   next to the train's KF, and issue 11's targets on 16 unseen rail runs, every run
+   a row: 2-s RMSE against hindsight-tuned filterpy CV/CA/IMM, 2σ coverage
+   (bench_rail.py; ``--rail-full`` tunes the baselines on the full grids).
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -32,8 +36,8 @@ every measurement (a smoke test, not figures to quote).
 This directory is not installed with kf_train (it imports filterpy, a test and
 benchmark oracle): ``make bench`` runs this file, ``kf-train bench`` too from a source
 checkout. Rows 1-3 are in bench_core.py, rows 4-5 in bench_live.py, row 6 in
-bench_filters.py, rows 7-8 in bench_scale.py, the child processes in bench_children.py
-and the helper nodes are the node_*.py files.
+bench_filters.py, rows 7-8 in bench_scale.py, row 9 in bench_rail.py, the child
+processes in bench_children.py and the helper nodes are the node_*.py files.
 """
 
 import argparse
@@ -48,11 +52,12 @@ from bench_common import header, percentile, Row, table  # noqa: E402, I100
 from bench_core import row_core, row_fleet, row_replay  # noqa: E402
 from bench_filters import row_filters  # noqa: E402
 from bench_live import LIVE_QOS_DEPTH, LIVE_RATES_HZ, row_live, row_startup  # noqa: E402
+from bench_rail import rows_rail  # noqa: E402
 from bench_scale import rows_live_fleet, rows_scale  # noqa: E402
 
 __all__ = ['main', 'percentile', 'ROWS']
 
-ROWS = (1, 2, 3, 4, 5, 6, 7, 8)
+ROWS = (1, 2, 3, 4, 5, 6, 7, 8, 9)
 
 
 def _parse(argv: List[str]) -> argparse.Namespace:
@@ -69,6 +74,9 @@ def _parse(argv: List[str]) -> argparse.Namespace:
     parser.add_argument('--qos-depth', type=int, default=LIVE_QOS_DEPTH,
                         help='row 4: subscription depth of the estimator and the echo, '
                              'best effort (default: %(default)s)')
+    parser.add_argument('--rail-full', action='store_true',
+                        help='row 9: tune the filterpy baselines on the full grids '
+                             '(slower the first time; cached in out/rail_baselines.json)')
     parser.add_argument('--output', default=os.path.join('out', 'bench.md'),
                         help="also write the table here ('' for nowhere; "
                              'default: %(default)s)')
@@ -105,7 +113,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                5: lambda: row_startup(args.quick),
                6: lambda: row_filters(args.quick),
                7: lambda: rows_scale(args.quick),
-               8: lambda: rows_live_fleet(args.quick)}
+               8: lambda: rows_live_fleet(args.quick),
+               9: lambda: rows_rail(args.quick, args.rail_full)}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()

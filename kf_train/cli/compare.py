@@ -7,7 +7,8 @@ then runs over the same rows from the same initial estimate. By default that
 estimate is drawn from N(truth at t0, P0), so that the initial error has the
 covariance the filter assumes and the NEES test below is valid from the first row;
 ``--initial preset`` uses the preset's fixed initial state instead (the seed's
-setup). Per filter it reports:
+setup). ``--preset rail`` runs its IMM on rail runs (:mod:`kf_train.cli.compare_rail`).
+Per filter it reports:
 
 * the position RMSE over all rows of all runs, and at the last row [m];
 * the average NEES: ANEES_k = mean over runs of e_kᵀ P_k⁻¹ e_k (e the estimation
@@ -36,7 +37,7 @@ from kf_train.batch import run_filter_series, SeriesError
 from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.filters import (
     check_kind, chi2_quantile, FilterOptions, make_filter, PARTICLE_KINDS, psd_factor)
-from kf_train.presets import available_presets, load_preset, Preset
+from kf_train.presets import available_presets, load_preset, Preset, RAIL_PRESET_NAME
 from kf_train.sim import scenario_for_preset
 import numpy as np
 
@@ -132,6 +133,9 @@ def run_comparison(preset_name: str, *, runs: int = DEFAULT_RUNS, seed: int = 0,
         raise ValueError(f'seed must be a non-negative integer, got {seed!r}')
     if initial not in INITIAL_MODES:
         raise ValueError(f"initial must be one of {', '.join(INITIAL_MODES)}, got {initial!r}")
+    if preset_name == RAIL_PRESET_NAME:  # its IMM, from each run's first measurement
+        from kf_train.cli.compare_rail import run_rail_comparison
+        return run_rail_comparison(runs, seed, kinds)
     preset = load_preset(preset_name)
     kinds = tuple(default_kinds(preset) if kinds is None else kinds)
     if not kinds:
@@ -219,8 +223,10 @@ def format_table(comparison: Comparison) -> str:
     lines = [f'kf-train compare: preset {comparison.preset}, {comparison.runs} runs '
              f'(seeds {comparison.seed}..{comparison.seed + comparison.runs - 1}), '
              f'{rows} rows each, initial estimate '
-             + ('drawn from N(truth, P0)' if comparison.initial == 'sampled'
-                else "the preset's fixed initial state")]
+             + {'sampled': 'drawn from N(truth, P0)',
+                'first_measurement': "set by the first measurement, the preset's priors "
+                                     'for the rest (rail: 120-s metro runs)'}.get(
+                 comparison.initial, "the preset's fixed initial state")]
     header = (f"{'filter':12s} {'runs':>5s} {'failed':>6s} {'RMSE pos [m]':>12s} "
               f"{'final [m]':>10s} {'mean ANEES':>11s} {'99% bounds':>15s} "
               f"{'rows in':>7s} {'µs/row':>9s}")
@@ -298,7 +304,7 @@ def _parser() -> argparse.ArgumentParser:
                     'runs of a preset scenario; print RMSE, ANEES against the 99%% chi2 '
                     'bounds and time per row, and draw a figure.')
     parser.add_argument('--preset', metavar='NAME', default='range-bearing',
-                        choices=available_presets(),
+                        choices=available_presets() + [RAIL_PRESET_NAME],
                         help='a shipped preset (default %(default)s): %(choices)s')
     parser.add_argument('--runs', metavar='N', type=int, default=DEFAULT_RUNS,
                         help='Monte-Carlo runs (default %(default)d)')

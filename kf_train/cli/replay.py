@@ -36,6 +36,11 @@ With an ``id`` column, linear presets run as a vectorised bank
 along their own time axis); the results equal filtering each id alone. The EKF preset
 and ``--filter`` run id by id.
 
+``--preset rail`` (or a ``--config`` file with ``model: rail_regimes``) runs the rail
+IMM (docs/rail.md) row by row, started by each id's first row as the streaming
+estimator's default is (:mod:`kf_train.batch.rail_series`); ``--filter`` kf or ekf
+only, no ``--smooth``.
+
 ``--filter kf|ekf|ukf|pf|bootstrap-pf`` runs that filter of the family
 (:mod:`kf_train.filters.family`) row by row instead, with the same columns (variances
 from the filter's covariance; for the particle filters the particles'); ``--alpha``,
@@ -66,13 +71,17 @@ import warnings
 
 from kf_train.batch import (
     bank_time_steps, DEFAULT_BLOCK_ROWS, filter_table, group_rows, Groups, MAX_ABS_TIME_S,
-    output_header, resolve_horizon, RowError, rts_smooth, run_bank, run_filter_series,
-    run_linear_series, run_series, SeriesResult, SmootherResult, TimeOrderError)
+    output_header, RailSeriesFilter, resolve_horizon, RowError, rts_smooth, run_bank,
+    run_filter_series, run_linear_series, run_series, SeriesResult, SmootherResult,
+    TimeOrderError)
 from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
+from kf_train.estimator import RAIL_FILTER_KINDS
 from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S, PARTICLE_KINDS
 from kf_train.io import csvio
-from kf_train.presets import available_presets, load_preset, load_preset_file, Preset
+from kf_train.presets import (
+    available_presets, is_rail_preset_file, load_preset, load_preset_file, load_rail_preset,
+    Preset, RAIL_PRESET_NAME, RailPreset)
 import numpy as np
 
 EXIT_OK = 0
@@ -541,14 +550,16 @@ def _parser() -> argparse.ArgumentParser:
                'Output: id (if given), t, each state by name, var_<state>; '
                'predicted_<state> and var_predicted_<state> at t + horizon; '
                'smoothed_<state> and var_smoothed_<state> with --smooth. Presets: '
-               + ', '.join(available_presets()) + '. Bad input names the line and '
-               'column, exits 1 and writes nothing.')
+               + ', '.join(available_presets() + [RAIL_PRESET_NAME]) + ' (rail: the '
+               'IMM of docs/rail.md, started by the first row). Bad input names the line '
+               'and column, exits 1 and writes nothing.')
     parser.add_argument('input', metavar='INPUT', nargs='?',
                         help='measurements: CSV, a .parquet file or a directory of Parquet '
                              "files ('-' reads CSV from standard input), or a rosbag2 bag "
                              '(a directory, .mcap or .db3): see the bag options')
     source = parser.add_mutually_exclusive_group()
-    source.add_argument('--preset', metavar='NAME', choices=available_presets(),
+    source.add_argument('--preset', metavar='NAME',
+                        choices=available_presets() + [RAIL_PRESET_NAME],
                         help='a shipped preset: %(choices)s')
     source.add_argument('--config', metavar='FILE', help='a preset YAML file of your own')
     parser.add_argument('--output', '-o', metavar='OUTPUT',
@@ -589,8 +600,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser = _parser()
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if args.list:
-        for name in available_presets():
-            print(f'{name:22s} {load_preset(name).description}')
+        for name in available_presets() + [RAIL_PRESET_NAME]:
+            print(f'{name:22s} {load_any_preset(name, None).description}')
         return EXIT_OK
     if args.input is not None and args.input != '-' and (
             is_bag(args.input) or (args.preset is None and args.config is None
@@ -614,8 +625,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ValueError as error:
         parser.error(str(error))
     try:
-        preset = load_preset(args.preset) if args.preset else load_preset_file(args.config)
-        filt = None if args.filter is None else make_filter(preset, args.filter, options)
+        preset = load_any_preset(args.preset, args.config)
+        filt = _make_filter(preset, args, options)
         summary = run_engine(args, preset, filt)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
@@ -624,6 +635,28 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'kf-train replay: {summary.rows} rows with preset {preset.name} -> '
               f'{args.output} ({summary.seconds:.3f} s)', file=sys.stderr)
     return EXIT_OK
+
+
+def load_any_preset(name: Optional[str], path: Optional[str]):
+    """Return a shipped preset by name or a preset file; rail ones as a RailPreset."""
+    if name == RAIL_PRESET_NAME:
+        return load_rail_preset()
+    if name:
+        return load_preset(name)
+    return load_rail_preset(path) if is_rail_preset_file(path) else load_preset_file(path)
+
+
+def _make_filter(preset, args, options) -> Optional[Filter]:
+    """Return the row-by-row filter ``--filter`` asks for (the rail IMM for rail), or None."""
+    if not isinstance(preset, RailPreset):
+        return None if args.filter is None else make_filter(preset, args.filter, options)
+    if args.filter not in (None,) + RAIL_FILTER_KINDS:
+        raise ValueError(f'--filter {args.filter}: preset {preset.name!r} is an IMM of four '
+                         'Kalman filters; it runs with kf (or ekf, the same) only')
+    if args.smooth:
+        raise ValueError(f'--smooth: preset {preset.name!r} is an IMM (a mixture), and the '
+                         'RTS smoother needs one linear-Gaussian model')
+    return RailSeriesFilter(preset)
 
 
 def is_bag(path: str) -> bool:

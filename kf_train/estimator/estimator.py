@@ -129,7 +129,7 @@ from kf_train.estimator.contract import (
 from kf_train.estimator.fusion import Fusion
 from kf_train.estimator.history import History
 from kf_train.estimator.settings import Configuration, configure, EstimatorSettings
-from kf_train.filters import as_covariance, as_vector
+from kf_train.filters import as_covariance, as_vector, NS_PER_S
 import numpy as np
 
 
@@ -193,6 +193,31 @@ class StreamEstimator:
         if probabilities is None or fusion.x is None:
             return None
         return self.model.imm.mode_names, probabilities(fusion.x, fusion.P)
+
+    def predict_to(self, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Return (x, P) predicted from the newest state to ``stamp_ns``; nothing changes.
+
+        ``stamp_ns`` must not be before the newest fused stamp. It is the model's own
+        look-ahead (the published prediction's: the rail IMM's mixture, the particle
+        filter's exact moments), holding the newest interval's control. Raises
+        ValueError before the first measurement.
+        """
+        fusion = self._fusion
+        stamp_ns = check_stamp(stamp_ns)
+        if fusion.x is None:
+            raise ValueError('no state yet: nothing has been fused since start or reset')
+        if stamp_ns < fusion.last_stamp_ns:
+            raise ValueError(f'stamp_ns {stamp_ns} is before the newest fused stamp '
+                             f'{fusion.last_stamp_ns}')
+        dt_s = (stamp_ns - fusion.last_stamp_ns) / NS_PER_S
+        predict = self._config.predict_ahead
+        if fusion.controls is None:
+            x, P = predict(fusion.x, fusion.P, dt_s)
+        else:
+            u = fusion.controls.for_interval_ending(fusion.last_stamp_ns)[0]
+            x, P = predict(fusion.x, fusion.P, dt_s, u)
+        return x.copy(), P.copy()
 
     @property
     def gate_threshold(self) -> float:

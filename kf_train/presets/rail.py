@@ -125,6 +125,29 @@ class RailPreset(NamedTuple):
         """Return the four-regime IMM of these parameters."""
         return RailModel(self.parameters)
 
+    @property
+    def dynamics(self) -> 'MovingDynamics':
+        """Return the moving regimes' transition (for series results; see MovingDynamics)."""
+        return MovingDynamics(self.parameters)
+
+
+class MovingDynamics(NamedTuple):
+    """
+    F(dt) of the rail model's moving regimes (the relaxation; A and B held).
+
+    A series result carries each row's F for the RTS smoother; an IMM has no single
+    F, so this is the moving regimes' (what stand does is F = diag(1, 0, 0, 0, 1, 1)),
+    and the tools refuse to smooth the rail preset.
+    """
+
+    parameters: RailModelParameters
+
+    def F_batch(self, dt_s) -> np.ndarray:
+        """Return F for each dt: shape (k, 6, 6)."""
+        moving = RailModel(self.parameters).modes[1]
+        return np.array([moving.F(float(dt)) for dt in np.atleast_1d(dt_s)]).reshape(
+            (-1, len(STATE_NAMES), len(STATE_NAMES)))
+
 
 def load_rail_preset(path: str = RAIL_PRESET_PATH) -> RailPreset:
     """Return the rail preset in a YAML file; errors name the file and the key."""

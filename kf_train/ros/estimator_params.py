@@ -14,14 +14,13 @@ import dataclasses
 from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
 from kf_train.estimator import (
-    EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS, LIVE_PRESETS,
-    MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, PF_PARTICLES_RANGE,
+    DEFAULT_PRESET, EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
+    LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, PF_PARTICLES_RANGE,
     PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, RESTART_AFTER_STALE_RANGE,
     UKF_ALPHA_RANGE, UKF_BETA_RANGE, UKF_KAPPA_RANGE)
 from kf_train.filters import FILTER_KINDS
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
 
-DEFAULT_PRESET = 'train'
 QOS_RELIABILITIES = ('best_effort', 'reliable')
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
@@ -30,7 +29,7 @@ NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
 SETTING_NAMES = tuple(field.name for field in dataclasses.fields(EstimatorSettings))
 """The parameters that are EstimatorSettings fields; the others configure the node."""
 
-_CORE = EstimatorSettings()  # the seed-faithful core defaults
+_CORE = EstimatorSettings()  # the core defaults: rail, gate on (SEED_SWITCH for the seed)
 _FIXED = ' Fixed at start-up (restart to change).'
 _LIVE = 'Takes effect from the next measurement.'
 _AT_INIT = 'Used when the filter (re)initialises.'
@@ -55,16 +54,18 @@ def _integer(name, default, description, range_, **more) -> ParamSpec:
 PARAMETERS_FIXED = (
     ParamSpec(
         'preset', 'string', DEFAULT_PRESET,
-        'The filter: rail (a train in regimes stand/accelerate/cruise/brake, an IMM; for '
-        'real trains, docs/rail.md), a seed preset (' + ', '.join(LIVE_PRESETS[1:]) + ') or '
-        'the path of a preset YAML file. It sets the model, the control topic and the '
-        'defaults of initial_state, initial_covariance, nominal_period_s and horizon_s.'
-        + _FIXED,
+        'The filter: rail (default: a real train in regimes stand/accelerate/cruise/brake, '
+        'an IMM; docs/rail.md), a seed preset (' + ', '.join(LIVE_PRESETS[1:]) + '; '
+        'preset:=train with initialization:=prior and gate_probability:=1.0 is seed 000 '
+        'exactly) or the path of a preset YAML file. It sets the model, the control topic '
+        'and the defaults of initial_state, initial_covariance, nominal_period_s and '
+        'horizon_s.' + _FIXED,
         constraints='one of: ' + ', '.join(LIVE_PRESETS) + ', or a .yaml path', live=False,
         group=_G_FIXED),
     ParamSpec(
         'filter', 'string', _CORE.filter,
-        'The filter: kf (exact linear Kalman filter, default), ekf (the same on these linear '
+        'The filter: kf (exact linear Kalman filter, default; with preset rail its IMM of four '
+        'Kalman filters, which only kf and ekf run), ekf (the same on these linear '
         'presets), ukf (unscented, ukf_alpha/beta/kappa), pf (regularised particle filter: '
         'first update from the measurement, progressive correction, Metropolis-Hastings '
         'move) or bootstrap-pf (plain bootstrap particle filter, for teaching; give it '
@@ -103,13 +104,17 @@ PARAMETERS_FIXED = (
 PARAMETERS_AT_INIT = (
     ParamSpec(
         'initialization', 'string', _CORE.initialization,
-        'first_measurement: the first measurement sets the position, the velocity starts '
-        'wide; prior: initial_state/initial_covariance hold nominal_period_s before the first '
-        'stamp (seed 000). ' + _AT_INIT, choices=INITIALIZATIONS, group=_G_INIT),
+        'first_measurement (default): the first measurement sets the position, the other '
+        'states start wide (rail: from initial_covariance, its priors; other presets: '
+        'first_velocity_std_mps); prior: initial_state/initial_covariance hold '
+        'nominal_period_s before the first stamp (seed 000: with preset:=train and '
+        'gate_probability:=1.0). ' + _AT_INIT, choices=INITIALIZATIONS, group=_G_INIT),
     ParamSpec(
         'initial_state', 'double_array', None,
-        'Initial [position m, velocity m/s] ([position m] for the robot); in '
-        'first_measurement mode only the unmeasured velocity is used. ' + _PRESETS + _AT_INIT,
+        'Initial state: [position m, velocity m/s] (train, car), [position m] (robot), '
+        '[position, velocity, acceleration, commanded acceleration, traction A, braking B] '
+        '(rail); in first_measurement mode only the unmeasured states are used. '
+        + _PRESETS + _AT_INIT,
         constraints='one finite double per state', unit='m, m/s', group=_G_INIT,
         derived=True),
     ParamSpec(
@@ -122,15 +127,17 @@ PARAMETERS_AT_INIT = (
             'Prior mode: how long before the first stamp the prior holds [s]. ' + _PRESETS
             + _AT_INIT, (1e-6, 3600.0), 's', group=_G_INIT, derived=True),
     _double('first_velocity_std_mps', _CORE.first_velocity_std_mps,
-            'first_measurement mode: standard deviation of the initial velocity [m/s]. '
-            + _AT_INIT, (1e-6, 1e6), 'm/s', group=_G_INIT),
+            'first_measurement mode: standard deviation of the initial velocity [m/s] (not '
+            "for rail: its initial_covariance holds the velocity's, 20 m/s). " + _AT_INIT,
+            (1e-6, 1e6), 'm/s', group=_G_INIT),
 )
 
 PARAMETERS_LIVE = (
     _double('process_noise_density', _CORE.process_noise_density,
             'White-noise acceleration density q [m²/s³]: Q(dt) = q [[dt³/3, dt²/2], '
             "[dt²/2, dt]], added to the preset's process noise (train: 0, as seed 000, which "
-            'trusts the constant-velocity model fully). Must be 0 for the robot. ' + _LIVE,
+            'trusts the constant-velocity model fully). Must be 0 for the robot and for rail '
+            '(its regimes have their own noise). ' + _LIVE,
             (0.0, BIG), 'm²/s³', group=_G_LIVE),
     _double('measurement_variance', _CORE.measurement_variance,
             'Position measurement variance R [m²] overriding the message pose.covariance[0]; '
@@ -149,13 +156,16 @@ PARAMETERS_LIVE = (
             'less than this is fused by rewinding and replaying; older ones are rejected as '
             'stale. 0 accepts only increasing stamps. ' + _LIVE, HISTORY_S_RANGE, 's',
             group=_G_LIVE),
-    # The χ² gate stays off (1.0): with Q = 0 and the seed's wrong prior, valid
-    # innovations reach a NIS of 25 on some seeds (seed 3), which a 0.9999 gate would
-    # reject, and prior mode must reproduce the seed on any measurements.
-    _double('gate_probability', 1.0,
+    # The χ² gate is on (kf_train.estimator.settings.DEFAULT_GATE_PROBABILITY says why
+    # 0.9999). The seed switch turns it off: with Q = 0 and the seed's wrong prior, valid
+    # innovations reach a NIS of 25 on some seeds (seed 3), and prior mode must
+    # reproduce the seed on any measurements.
+    _double('gate_probability', _CORE.gate_probability,
             'χ² gate: a measurement whose NIS exceeds the χ²(m) quantile of this probability '
-            'is rejected as an outlier; 1 (default) disables the gate, so that prior mode '
-            'reproduces the seeds on any data. For real sensors use e.g. 0.999. ' + _LIVE,
+            'is rejected as an outlier and counted (0.9999: NIS > 15.1 for a position, 1 valid '
+            'measurement in 10⁴; a 10⁶ m outlier is always rejected); 1 disables '
+            'the gate, as the seed switch (preset:=train, initialization:=prior, '
+            'gate_probability:=1.0) needs to reproduce seed 000 on any data. ' + _LIVE,
             GATE_PROBABILITY_RANGE, group=_G_LIVE),
     _integer('max_consecutive_outliers', _CORE.max_consecutive_outliers,
              'After this many gate (or numerical) rejections in a row the filter resets and '

@@ -26,7 +26,7 @@ _spec.loader.exec_module(bench)
 
 
 def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
-    """--quick measures rows 1 to 8 (one live rate) and prints and saves one table."""
+    """--quick measures rows 1 to 9 (one live rate) and prints and saves one table."""
     output = tmp_path / 'out' / 'bench.md'
     result = subprocess.run(
         [sys.executable, BENCH, '--quick', '--rates', '2000',
@@ -40,7 +40,7 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     table = [line for line in out.splitlines() if line.startswith('| ')]
     assert len([line for line in out.splitlines() if line.startswith('| Row |')]) == 1
     rows = {line.split('|')[1].strip() for line in table[1:]}
-    assert rows == {'1', '2', '3', '4', '5', '6', '7', '8'}
+    assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9'}
     assert not [line for line in table if 'failed:' in line], table
     # Every live trial got through and exited; every start-up was measured.
     live = [line for line in table if line.startswith('| 4 |')]
@@ -57,13 +57,19 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
         assert expected in scale, expected
     live_fleet = [line for line in table if line.startswith('| 8 |')]
     assert len(live_fleet) == 1 and 'estimators per core' in live_fleet[0], live_fleet
+    # Row 9: the rail IMM's cost beside the KF's, and one target row per run (2 runs).
+    rail = [line for line in table if line.startswith('| 9 |')]
+    assert len([line for line in rail if '× the closed-form KF' in line]) == 3, rail
+    runs = [line for line in rail if 'unseen run' in line]
+    assert len(runs) == 2 and all('2σ coverage' in line and 'the best (' in line
+                                  for line in runs), runs
     # The file holds the header and the same table.
     saved = output.read_text()
     assert saved.splitlines()[0].startswith('kf_train benchmark, ')
     assert [line for line in saved.splitlines() if line.startswith('| ')] == table
 
 
-@pytest.mark.parametrize('argv', [['--rows', '9'], ['--rows', 'x'], ['--rates', '0'],
+@pytest.mark.parametrize('argv', [['--rows', '10'], ['--rows', 'x'], ['--rates', '0'],
                                   ['--bogus']])
 def test_bad_command_line_exits_2(argv, capsys):
     """An unknown row, a bad rate or option: exit 2 with argparse's message."""

@@ -17,6 +17,7 @@ from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
+import pytest
 import rclpy
 from rclpy.parameter import Parameter
 from ros_helpers import spin_until
@@ -126,11 +127,15 @@ def vector_numbers(msg):
             msg.vector.z)
 
 
-def test_live_node_and_bag_replay_are_bit_equal(ros_context, executor, tmp_path):
+@pytest.mark.parametrize('parameters', [
+    {'preset': 'train', 'process_noise_density': 0.5, 'history_s': 5.0,
+     'gate_probability': 0.9999},
+    {'history_s': 5.0},  # the defaults: the rail IMM, the gate at 0.9999
+])
+def test_live_node_and_bag_replay_are_bit_equal(ros_context, executor, tmp_path, parameters):
     """Same messages, same parameters: the same estimates, predictions and innovations."""
     base_ns = time.time_ns() - 60 * NS  # in the past: no stamp is in the node's future
     sequence = fault_sequence(base_ns)
-    parameters = {'process_noise_density': 0.5, 'history_s': 5.0, 'gate_probability': 0.9999}
     live = live_outputs(ros_context, executor, sequence, parameters)
     replayed = replay_outputs(tmp_path, sequence, parameters)
     for topic, numbers in (('estimate', odometry_numbers), ('prediction', odometry_numbers),

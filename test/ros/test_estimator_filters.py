@@ -140,7 +140,7 @@ def test_pf_out_of_sequence_replay_equals_in_order_bit_for_bit(kind):
     states = []
     for order in (list(range(80)), _arrival_order(80)):
         estimator = StreamEstimator(EstimatorSettings(
-            filter=kind, pf_particles=300, pf_seed=11, history_s=1.0,
+            preset='train', filter=kind, pf_particles=300, pf_seed=11, history_s=1.0,
             process_noise_density=PF_Q))
         _feed(estimator, stamps, z, None, order)
         states.append(estimator.state)
@@ -169,7 +169,7 @@ def test_regularised_pf_needs_no_process_noise_on_the_train():
     states = {}
     for kind in ('kf', 'pf', 'bootstrap-pf'):
         estimator = StreamEstimator(EstimatorSettings(
-            filter=kind, pf_particles=2000, pf_seed=3, process_noise_density=0.0,
+            preset='train', filter=kind, pf_particles=2000, pf_seed=3, process_noise_density=0.0,
             history_s=1.0))
         _feed(estimator, stamps, z, None, range(n))
         states[kind] = estimator.state
@@ -186,7 +186,7 @@ def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
     """An outlier is gated on the particle filter's NIS and leaves its state as it was."""
     stamps, z, _, _ = _stream('train', 30, 4)
     estimator = StreamEstimator(EstimatorSettings(
-        filter='pf', pf_particles=1000, history_s=1.0, gate_probability=0.999,
+        preset='train', filter='pf', pf_particles=1000, history_s=1.0, gate_probability=0.999,
         process_noise_density=PF_Q))
     _feed(estimator, stamps, z[:20], None, range(20))
     before = estimator.state
@@ -213,22 +213,24 @@ def test_pf_gate_uses_its_own_nis_and_a_rejection_changes_nothing():
 def test_invalid_filter_settings_are_rejected_by_the_core(name, value, words):
     """The core names the bad setting (the node's descriptors check the ranges first)."""
     with pytest.raises(ValueError) as caught:
-        StreamEstimator(EstimatorSettings(**{name: value}))
+        StreamEstimator(EstimatorSettings(preset='train', **{name: value}))
     for word in words:
         assert word in str(caught.value)
 
 
 def test_the_filter_cannot_change_on_a_running_estimator():
     """The filter kind and tuning are fixed for the estimator's life, like the preset."""
-    estimator = StreamEstimator(EstimatorSettings(filter='ukf'))
+    estimator = StreamEstimator(EstimatorSettings(preset='train', filter='ukf'))
     for change in ({'filter': 'kf'}, {'ukf_alpha': 0.5}, {'pf_seed': 3}):
         with pytest.raises(ValueError, match=next(iter(change))):
-            estimator.reconfigure(EstimatorSettings(**{'filter': 'ukf', **change}))
+            estimator.reconfigure(EstimatorSettings(
+                **{'preset': 'train', 'filter': 'ukf', **change}))
 
 
 def _node_run(ros_context, kind: str, stamps, z, order):
     """Return the node's final (x, P) after its measurement callback took the stream."""
     node = EstimatorNode(context=ros_context, parameter_overrides=[
+        Parameter('preset', value='train'),
         Parameter('filter', value=kind), Parameter('pf_seed', value=5),
         Parameter('pf_particles', value=2000),
         Parameter('process_noise_density', value=PF_Q),
@@ -270,6 +272,8 @@ def test_each_kind_converges_in_the_node(ros_context):
 @pytest.mark.parametrize('assignment, words', [
     ('filter:=foo', ['filter', 'kf', 'ukf', 'pf', 'bootstrap-pf']),
     ('pf_particles:=0', ['pf_particles', '1', '1000000']),
+    # The default preset, rail, is an IMM of Kalman filters: kf (or ekf) only.
+    ('filter:=ukf', ['filter must be kf', 'rail']),
 ])
 def test_invalid_filter_parameter_at_startup(domain_id, assignment, words):
     """An invalid filter value at start-up: one line naming it, exit 2, no traceback."""

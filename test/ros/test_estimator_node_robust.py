@@ -12,8 +12,8 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.estimator import (
-    EstimateStep, EstimatorSettings, NS_PER_S, Rejected, REJECTION_REASONS, RESET_REASONS,
-    StreamEstimator)
+    DEFAULT_GATE_PROBABILITY, EstimateStep, EstimatorSettings, NS_PER_S, Rejected,
+    REJECTION_REASONS, RESET_REASONS, StreamEstimator)
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
@@ -127,9 +127,14 @@ def _good(k, base_ns):
 
 
 def test_every_bad_input_class_is_counted_and_never_published(ros_context, executor):
-    """Each class of bad input is rejected and counted; the node keeps its state and runs on."""
-    h = Harness(ros_context, executor, expected_frame_id='odom', gate_probability=0.999,
-                process_noise_density=0.1)
+    """
+    Each class of bad input is rejected and counted; the node keeps its state and runs on.
+
+    With the node's defaults (the rail IMM, the χ² gate at 0.9999): the hostile-input
+    contract holds for them.
+    """
+    h = Harness(ros_context, executor, expected_frame_id='odom')
+    assert h.node.estimator.settings.preset == 'rail'
     base = _now_ns() - 60 * NS_PER_S
     twin = StreamEstimator(h.node.estimator.settings)
     for k in range(1, 21):
@@ -198,7 +203,7 @@ def test_a_non_finite_state_is_never_published_and_resets(ros_context, executor)
 
 def test_innovation_topic_layout(ros_context, executor):
     """The innovation topic carries x = y, y = S, z = NIS, stamped with the measurement."""
-    h = Harness(ros_context, executor, process_noise_density=0.2)
+    h = Harness(ros_context, executor, preset='train', process_noise_density=0.2)
     base = _now_ns() - 60 * NS_PER_S
     twin = StreamEstimator(h.node.estimator.settings)
     results = []
@@ -225,7 +230,7 @@ def test_innovation_topic_layout(ros_context, executor):
     (1.0, None), (0.02, 'noise parameters too small'), (50.0, 'noise parameters too large')])
 def test_diagnostics_judge_consistency(ros_context, executor, variance_factor, verdict):
     """The windowed mean NIS is checked against its χ² 99% bounds; R mis-set 50× is caught."""
-    h = Harness(ros_context, executor, gate_probability=1.0, nis_window=60,
+    h = Harness(ros_context, executor, preset='train', gate_probability=1.0, nis_window=60,
                 diagnostics_period_s=0.1, measurement_variance=variance_factor)
     rng = np.random.default_rng(4)
     base = _now_ns() - 60 * NS_PER_S
@@ -277,7 +282,7 @@ def test_diagnostics_report_rates_and_warn_once_on_timeout(ros_context, executor
 
 def test_reset_service_and_set_state(ros_context, executor):
     """~/reset forgets the state; ~/set_state sets it, or refuses it with a count."""
-    h = Harness(ros_context, executor, process_noise_density=0.1)
+    h = Harness(ros_context, executor, preset='train', process_noise_density=0.1)
     base = _now_ns() - 60 * NS_PER_S
     for k in range(1, 6):
         h.send(*_good(k, base))
@@ -320,7 +325,7 @@ def test_reset_service_and_set_state(ros_context, executor):
 
 def test_runtime_parameter_changes(ros_context, executor):
     """Valid changes apply from the next measurement; invalid ones are refused, old value kept."""
-    h = Harness(ros_context, executor)
+    h = Harness(ros_context, executor, preset='train')
     base = _now_ns() - 60 * NS_PER_S
     for k in range(1, 6):
         h.send(*_good(k, base))
@@ -398,4 +403,5 @@ def test_estimate_step_is_backwards_compatible():
     step = EstimateStep(1, np.zeros(2), np.eye(2), None, 2, np.zeros(2), np.eye(2))
     assert (step.measurement_stamp_ns, step.replayed, step.reset) == (0, 0, None)
     assert issubclass(Rejected, ValueError)
-    assert EstimatorSettings().gate_probability == 1.0 and EstimatorSettings().history_s == 0.0
+    assert (EstimatorSettings().gate_probability, EstimatorSettings().history_s) == (
+        DEFAULT_GATE_PROBABILITY, 0.0)

@@ -86,7 +86,7 @@ def _close(a, b, what):
     (0.0, 'prior'), (0.0, 'first_measurement'), (0.5, 'first_measurement')])
 def test_fast_train_path_equals_the_generic_path(q, initialization):
     """Closed form vs generic matrices: same steps, rejections and counters; 1e-9."""
-    settings = EstimatorSettings(history_s=1.0, gate_probability=0.999,
+    settings = EstimatorSettings(preset='train', history_s=1.0, gate_probability=0.999,
                                  max_consecutive_outliers=3, process_noise_density=q,
                                  initialization=initialization)
     events = _events(200, 1)
@@ -125,7 +125,7 @@ def test_fast_train_path_equals_the_generic_path(q, initialization):
 def test_fast_train_path_rejects_what_the_generic_path_rejects():
     """Overflow and a singular S: a numerical rejection on both, the state unchanged."""
     for cls in (StreamEstimator, _GenericEstimator):
-        estimator = cls(EstimatorSettings(history_s=1.0))
+        estimator = cls(EstimatorSettings(preset='train', history_s=1.0))
         estimator.set_state(EPOCH_NS, [0.0, 1e300], [[0.0, 0.0], [0.0, 0.0]])
         before = estimator.state
         with pytest.raises(Rejected) as caught:

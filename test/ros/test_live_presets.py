@@ -14,7 +14,7 @@ from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped, TwistStam
 from kf_train.batch import run_series
 from kf_train.estimator import (
     CONTROL_REJECTION_REASONS, EstimatorSettings, NS_PER_S, preset_defaults, Rejected,
-    resolve_preset, StreamEstimator)
+    resolve_preset, SEED_SWITCH, StreamEstimator)
 from kf_train.estimator import controls as controls_module
 from kf_train.filters import chi2_mean_bounds, chi2_quantile
 from kf_train.presets import load_preset
@@ -36,8 +36,9 @@ FALSE_ALARM = 1e-6
 """Probability that a correct filter fails a test's k·σ checks, all of them together."""
 EPOCH_NS = 1_700_000_000 * NS_PER_S
 TIMEOUT_S = 30.0
-PRIOR = dataclasses.replace(DEFAULTS, initialization='prior')
-"""The estimator node's defaults, in prior mode."""
+PRIOR = dataclasses.replace(DEFAULTS, **SEED_SWITCH)
+"""The estimator node's defaults with the seed switch: prior mode, no gate (preset train;
+the tests set theirs)."""
 _NODES = []
 
 
@@ -47,6 +48,12 @@ def _destroy_nodes():
     yield
     while _NODES:
         _NODES.pop().destroy_node()
+
+
+def seed_switch(preset: str):
+    """Return the node parameters of the seed switch (prior mode, no gate) for ``preset``."""
+    return [Parameter(name, value=preset if name == 'preset' else value)
+            for name, value in SEED_SWITCH.items()]
 
 
 def k_sigma(checks: int, false_alarm: float = FALSE_ALARM) -> float:
@@ -211,14 +218,16 @@ def _snapshot(estimator):
 # -- core: prior mode against the seeds ----------------------------------------------------
 
 
-def test_prior_mode_with_the_node_defaults_is_seed_000_for_any_seed():
+def test_the_seed_switch_over_the_node_defaults_is_seed_000_for_any_seed():
     """
-    The node's defaults in prior mode reproduce seed 000 for 20 seeds, 2 and 3 included.
+    The node's defaults with the seed switch reproduce seed 000 for 20 seeds, 2 and 3 included.
 
-    With the old default gate (0.9999) seed 3 would not: a valid innovation there
-    reaches a NIS of ~25 (Q = 0, the seed's wrong prior), above the 0.9999 quantile.
+    The switch turns the gate off: with a gate (0.9999) seed 3 would not, a valid
+    innovation there reaches a NIS of ~25 (Q = 0, the seed's wrong prior).
     """
-    assert DEFAULTS.gate_probability == 1.0
+    assert (DEFAULTS.preset, DEFAULTS.gate_probability) == ('rail', 0.9999)
+    assert (PRIOR.preset, PRIOR.initialization, PRIOR.gate_probability) == (
+        'train', 'prior', 1.0)
     largest_nis = {}
     for seed in range(20):
         sc = train_scenario(seed)
@@ -545,7 +554,7 @@ def test_simulator_scenario_and_estimator_preset_over_dds(ros_context, executor,
         Parameter('max_samples', value=samples), Parameter('min_subscribers', value=2),
         Parameter('seed', value=4)])
     estimator = EstimatorNode(context=ros_context, parameter_overrides=[
-        Parameter('preset', value=scenario), Parameter('initialization', value='prior')])
+        *seed_switch(scenario)])
     recorder = Recorder(ros_context, control_type)
     _add(executor, simulator, estimator, recorder)
     received = recorder.received
@@ -659,8 +668,7 @@ def test_cv_presets_over_dds(ros_context, executor, preset):
     sc = scenario_for_preset(preset, 8)
     R = load_preset(preset).model.R
     velocity = sc.z.shape[1] == 2
-    estimator = EstimatorNode(context=ros_context, parameter_overrides=[
-        Parameter('preset', value=preset), Parameter('initialization', value='prior')])
+    estimator = EstimatorNode(context=ros_context, parameter_overrides=seed_switch(preset))
     feeder = Feeder(ros_context, executor, estimator,
                     Odometry if velocity else PoseWithCovarianceStamped)
     stamps = _stamps(sc.t_s)
@@ -696,8 +704,7 @@ def test_late_controls_over_dds_correct_the_estimate(ros_context, executor):
     """
     sc = scenario_for_preset('robot', 6)
     n = 40
-    estimator = EstimatorNode(context=ros_context, parameter_overrides=[
-        Parameter('preset', value='robot'), Parameter('initialization', value='prior')])
+    estimator = EstimatorNode(context=ros_context, parameter_overrides=seed_switch('robot'))
     feeder = Feeder(ros_context, executor, estimator, PoseWithCovarianceStamped, TwistStamped)
     stamps = _stamps(sc.t_s[:n])
     for k, stamp in enumerate(stamps):
@@ -718,12 +725,11 @@ def test_late_controls_over_dds_correct_the_estimate(ros_context, executor):
 
 
 @pytest.mark.parametrize('seed', [2, 3])
-def test_prior_mode_with_all_other_defaults_over_dds(ros_context, executor, seed):
-    """Only initialization=prior set: the node reproduces seed 000's loop, nothing gated."""
+def test_the_seed_switch_with_all_other_defaults_over_dds(ros_context, executor, seed):
+    """Only the seed switch set: the node reproduces seed 000's loop, nothing gated."""
     sc = train_scenario(seed)
     expected_x, expected_P = seed_000_loop(sc.z[:, 0])
-    estimator = EstimatorNode(context=ros_context, parameter_overrides=[
-        Parameter('initialization', value='prior')])
+    estimator = EstimatorNode(context=ros_context, parameter_overrides=seed_switch('train'))
     feeder = Feeder(ros_context, executor, estimator, PoseWithCovarianceStamped)
     for k, stamp in enumerate(_stamps(sc.t_s)):
         feeder.send(messages.to_measurement_msg(stamp, 'odom', sc.z[k, 0], 1.0))

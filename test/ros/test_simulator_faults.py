@@ -55,7 +55,7 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
     simulator, estimator, delivered = _pipeline(ros_context, executor, {
         'max_samples': 150, 'dropout_probability': 0.1, 'outlier_probability': 0.05,
         'outlier_size_m': 30.0, 'delay_s': 0.05, 'reorder_probability': 0.15},
-        {'gate_probability': 0.9999})  # the node's default gate is off
+        {'gate_probability': 0.9999})  # the node's default (rail IMM, gate 0.9999)
     estimates = []
     listener = rclpy.create_node('listener', context=ros_context)
     listener.create_subscription(Odometry, 'estimate', estimates.append, 100)

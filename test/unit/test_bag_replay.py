@@ -138,21 +138,26 @@ def test_csv_equals_mcap(tmp_path):
     bag, _ = seed_000_bag(tmp_path / 'seed')
     assert replay(bag, '--output', tmp_path / 'o.csv') == 0
     assert replay(bag, '--output', tmp_path / 'o.mcap') == 0
-    _, rows = read_csv(tmp_path / 'o.csv')
+    header, rows = read_csv(tmp_path / 'o.csv')
     with Reader(tmp_path / 'o.mcap') as reader:
         estimates = [TYPESTORE.deserialize_cdr(raw, c.msgtype)
                      for c, _, raw in reader.messages() if c.topic == '/estimate']
-    assert [m.pose.pose.position.x for m in estimates] == rows[:, 1].tolist()
-    assert [m.twist.twist.linear.x for m in estimates] == rows[:, 2].tolist()
-    assert [m.pose.covariance[0] for m in estimates] == rows[:, 3].tolist()
+    # The defaults: the rail preset, whose six states are all in the CSV.
+    column = {name: rows[:, header.index(name)].tolist() for name in header}
+    assert 'acceleration' in column and len(estimates) == len(rows)
+    assert [m.pose.pose.position.x for m in estimates] == column['position']
+    assert [m.twist.twist.linear.x for m in estimates] == column['velocity']
+    assert [m.pose.covariance[0] for m in estimates] == column['var_position']
+    assert [m.twist.covariance[0] for m in estimates] == column['var_velocity']
 
 
 def test_params_file_and_overrides(tmp_path):
     """--params-file (node estimator) then -p, as the node reads them."""
     bag, _ = seed_000_bag(tmp_path / 'seed')
     params = tmp_path / 'p.yaml'
-    params.write_text('estimator:\n  ros__parameters:\n    initialization: prior\n'
-                      '    gate_probability: 1.0\n    horizon_s: 5.0\n')
+    params.write_text('estimator:\n  ros__parameters:\n    preset: train\n'
+                      '    initialization: prior\n    gate_probability: 1.0\n'
+                      '    horizon_s: 5.0\n')
     assert replay(bag, '--output', tmp_path / 'a.csv', '--params-file', params,
                   '-p', 'horizon_s:=2.0') == 0
     assert replay(bag, '--output', tmp_path / 'b.csv', *SEED_000) == 0

@@ -33,6 +33,7 @@ PRIOR_MEAN = (0.0, 10.0)
 PRIOR_VARIANCES = (4.0, 1.0)
 SEED = 1
 MATCHED = EstimatorSettings(
+    preset='train', gate_probability=1.0,
     initialization='prior', initial_state=PRIOR_MEAN, initial_covariance=PRIOR_VARIANCES,
     nominal_period_s=DT_S, process_noise_density=Q_DENSITY, measurement_variance=R_M2)
 

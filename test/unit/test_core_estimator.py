@@ -6,6 +6,9 @@ from kf_train.filters import constant_velocity_F, WhiteNoiseAcceleration
 import numpy as np
 import pytest
 
+# The train's constant-velocity KF without a gate: the defaults before issue 11 (the
+# defaults are now the rail preset with the gate on; test_estimator_rail.py).
+TRAIN = {'preset': 'train', 'gate_probability': 1.0}
 PERIOD_NS = 100_000_000  # seed 000's dt = 0.1 s
 
 
@@ -50,7 +53,7 @@ def test_prior_mode_is_seed_000():
     """Prior mode fed stamps k·0.1 s reproduces the seed's MATLAB loop."""
     z = _train(100)
     expected_x, expected_P = _seed_000_matlab(z)
-    estimator = StreamEstimator(EstimatorSettings(initialization='prior'))
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN, initialization='prior'))
     for k in range(100):
         step = estimator.process((k + 1) * PERIOD_NS, z[k], 1.0)
         # Rounding only (the seed's textbook P = P1 − K M P1 against the closed-form
@@ -64,13 +67,14 @@ def test_prior_mode_is_seed_000():
 
 def test_first_measurement_mode_initialises_from_the_measurement():
     """The first output is [z1, v0] with variances [R, first_velocity_std²]."""
-    settings = EstimatorSettings(initial_state=(-7.0, 3.0), first_velocity_std_mps=20.0)
+    settings = EstimatorSettings(**TRAIN, initial_state=(-7.0, 3.0),
+                                 first_velocity_std_mps=20.0)
     step = StreamEstimator(settings).process(5 * NS_PER_S, 123.25, 0.5)
     assert step.update is None
     assert np.array_equal(step.x, [123.25, 3.0])
     assert np.array_equal(step.P, np.diag([0.5, 400.0]))
     assert step.stamp_ns == 5 * NS_PER_S
-    assert StreamEstimator().settings.initialization == 'first_measurement'
+    assert EstimatorSettings(**TRAIN).initialization == 'first_measurement'
 
 
 def test_first_measurement_mode_joins_a_moving_train():
@@ -84,14 +88,14 @@ def test_first_measurement_mode_joins_a_moving_train():
     z = _train(200, start_s=599.9)  # first sample at t = 600 s, x = 6000 m
     stamps = [600 * NS_PER_S + k * PERIOD_NS for k in range(200)]
 
-    estimator = StreamEstimator(EstimatorSettings())
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN))
     for k in range(5):
         step = estimator.process(stamps[k], z[k], 1.0)
     sigma_v = np.sqrt(step.P[1, 1])
     assert abs(step.x[1] - 10.0) < 4.0 * sigma_v
     assert sigma_v < 5.0
 
-    prior = StreamEstimator(EstimatorSettings(initialization='prior'))
+    prior = StreamEstimator(EstimatorSettings(**TRAIN, initialization='prior'))
     for k in range(5):
         step = prior.process(stamps[k], z[k], 1.0)
     sigma_v = np.sqrt(step.P[1, 1])
@@ -108,7 +112,7 @@ def test_first_measurement_mode_joins_a_moving_train():
     (7.123456789, 7_123_456_789)])  # 1.025e9 is 1024999999.99… in floats: round, not cut
 def test_prediction(horizon_s, horizon_ns):
     """The prediction is stamped stamp + horizon in ns and equals F(h) x, F P Fᵀ + Q(h)."""
-    settings = EstimatorSettings(horizon_s=horizon_s, process_noise_density=0.2)
+    settings = EstimatorSettings(**TRAIN, horizon_s=horizon_s, process_noise_density=0.2)
     estimator = StreamEstimator(settings)
     z = _train(10)
     stamp = 1_700_000_000_123_456_789
@@ -136,7 +140,7 @@ def test_prediction(horizon_s, horizon_ns):
 @pytest.mark.parametrize('delta_ns', [0, -1, -PERIOD_NS])
 def test_non_increasing_stamp_rejected(mode, delta_ns):
     """A stamp not newer than the last raises ValueError and leaves the state unchanged."""
-    estimator = StreamEstimator(EstimatorSettings(initialization=mode))
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN, initialization=mode))
     z = _train(3)
     for k in range(3):
         estimator.process((k + 1) * PERIOD_NS, z[k], 1.0)
@@ -145,7 +149,7 @@ def test_non_increasing_stamp_rejected(mode, delta_ns):
         estimator.process(3 * PERIOD_NS + delta_ns, 0.4, 1.0)
     assert _state(estimator) == before
     # The estimator still works, and gives what an untouched twin gives.
-    twin = StreamEstimator(EstimatorSettings(initialization=mode))
+    twin = StreamEstimator(EstimatorSettings(**TRAIN, initialization=mode))
     for k in range(3):
         twin.process((k + 1) * PERIOD_NS, z[k], 1.0)
     assert np.array_equal(estimator.process(4 * PERIOD_NS, 4.0, 1.0).x,
@@ -163,7 +167,7 @@ def test_non_increasing_stamp_rejected(mode, delta_ns):
 @pytest.mark.parametrize('initialised', [False, True])
 def test_bad_measurement_rejected(position, variance, pattern, initialised):
     """A non-finite position or a non-positive variance is rejected without change."""
-    estimator = StreamEstimator()
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN))
     if initialised:
         estimator.process(PERIOD_NS, 1.0, 1.0)
     before = _state(estimator)
@@ -176,7 +180,7 @@ def test_bad_measurement_rejected(position, variance, pattern, initialised):
 @pytest.mark.parametrize('stamp', [1.5e8, '100', None])
 def test_non_integer_stamp_rejected(stamp):
     """A stamp that is not an integer number of nanoseconds is rejected."""
-    estimator = StreamEstimator()
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN))
     with pytest.raises(ValueError, match='stamp_ns'):
         estimator.process(stamp, 1.0, 1.0)
     assert not estimator.initialized
@@ -184,9 +188,9 @@ def test_non_integer_stamp_rejected(stamp):
 
 def test_measurement_variance_override():
     """measurement_variance > 0 replaces the message's variance, even an invalid one."""
-    estimator = StreamEstimator(EstimatorSettings(measurement_variance=4.0))
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN, measurement_variance=4.0))
     assert estimator.measurement_variance(0.25) == 4.0
-    assert StreamEstimator().measurement_variance(0.25) == 0.25
+    assert StreamEstimator(EstimatorSettings(**TRAIN)).measurement_variance(0.25) == 0.25
     step = estimator.process(PERIOD_NS, 10.0, 0.0)
     assert step.P[0, 0] == 4.0
     step = estimator.process(2 * PERIOD_NS, 11.0, 0.25)
@@ -197,21 +201,21 @@ def test_measurement_variance_override():
 
 def test_reset():
     """reset() forgets everything; the next measurement initialises afresh, any stamp."""
-    estimator = StreamEstimator()
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN))
     estimator.process(10 * PERIOD_NS, 5.0, 1.0)
     estimator.process(11 * PERIOD_NS, 6.0, 1.0)
     estimator.reset()
     assert not estimator.initialized
     assert estimator.state is None and estimator.last_stamp_ns is None
     step = estimator.process(PERIOD_NS, -3.0, 2.0)  # older than before: accepted
-    fresh = StreamEstimator().process(PERIOD_NS, -3.0, 2.0)
+    fresh = StreamEstimator(EstimatorSettings(**TRAIN)).process(PERIOD_NS, -3.0, 2.0)
     assert np.array_equal(step.x, fresh.x) and np.array_equal(step.P, fresh.P)
     assert estimator.last_stamp_ns == PERIOD_NS
 
 
 def test_state_accessors():
     """The state is None before the first measurement and copies afterwards."""
-    estimator = StreamEstimator()
+    estimator = StreamEstimator(EstimatorSettings(**TRAIN))
     assert estimator.state is None and not estimator.initialized
     estimator.process(PERIOD_NS, 1.0, 1.0)
     x, P = estimator.state
@@ -242,7 +246,7 @@ def test_state_accessors():
 ])
 def test_settings_validation(kwargs, name):
     """Each bad settings field raises ValueError naming the field, also from the estimator."""
-    settings = EstimatorSettings(**kwargs)
+    settings = EstimatorSettings(**TRAIN, **kwargs)
     with pytest.raises(ValueError, match=rf'^{name} must'):
         settings.validated()
     with pytest.raises(ValueError, match=rf'^{name} must'):
@@ -254,16 +258,17 @@ def test_covariance_from_list():
     assert np.array_equal(covariance_from_list('c', [1.0, 2.0], 2), np.diag([1.0, 2.0]))
     assert np.array_equal(covariance_from_list('c', [2.0, 0.5, 0.5, 1.0], 2),
                           [[2.0, 0.5], [0.5, 1.0]])
-    settings = EstimatorSettings(initialization='prior', initial_covariance=(2.0, 0.5, 0.5, 1.0))
+    settings = EstimatorSettings(**TRAIN, initialization='prior',
+                                 initial_covariance=(2.0, 0.5, 0.5, 1.0))
     step = StreamEstimator(settings).process(PERIOD_NS, 0.0, 1.0)
     np.testing.assert_allclose(step.update.innovation_covariance,
                                [[2.0 + 2 * 0.1 * 0.5 + 0.01 * 1.0 + 1.0]], rtol=1e-14)
 
 
 @pytest.mark.parametrize('settings', [
-    EstimatorSettings(initialization='prior'),
-    EstimatorSettings(),
-    EstimatorSettings(process_noise_density=0.5, horizon_s=1.0),
+    EstimatorSettings(**TRAIN, initialization='prior'),
+    EstimatorSettings(**TRAIN),
+    EstimatorSettings(**TRAIN, process_noise_density=0.5, horizon_s=1.0),
 ])
 def test_nanosecond_epoch_offset(settings):
     """Stamps at an epoch of 1.7e18 ns give the same estimates as stamps from 0."""

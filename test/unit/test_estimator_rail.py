@@ -1,13 +1,15 @@
 """The streaming estimator running the rail preset (issue 11): the IMM behind (x, P)."""
 
 import dataclasses
+import math
 import os
 
 from kf_train.estimator import (
-    EstimatorSettings, LIVE_PRESETS, preset_defaults, Rejected, resolve_preset,
+    EstimatorSettings, LIVE_PRESETS, preset_defaults, Rejected, resolve_preset, SEED_SWITCH,
     StreamEstimator)
 from kf_train.filters import IMMFilter, make_rail_filter, MODE_NAMES, RailModelParameters
 from kf_train.presets import RAIL_PRESET_PATH, RailPreset
+from kf_train.ros.estimator_params import DEFAULTS as NODE_DEFAULTS
 from kf_train.sim.rail import family_parameters, rail_scenario
 import numpy as np
 import pytest
@@ -92,7 +94,7 @@ def test_mode_probabilities_sum_to_one_and_are_none_without_an_imm(metro):
         assert mu.sum() == pytest.approx(1.0, abs=1e-12)
     mu[:] = 0.0  # a copy: the estimator's state is not touched
     assert estimator.mode_probabilities()[1].sum() == pytest.approx(1.0, abs=1e-12)
-    train = StreamEstimator(EstimatorSettings())
+    train = StreamEstimator(EstimatorSettings(preset='train'))
     train.process(stamps[0], zs[0], 1.0)
     assert train.mode_probabilities() is None
 
@@ -237,3 +239,101 @@ def test_a_train_braking_to_a_stop_is_never_predicted_to_reverse(metro):
     assert len(standing) > 50, 'the run must hold a stop'
     assert np.median([abs(steps[k].x[1]) for k in standing]) < 0.05
     assert np.median([stand[k] for k in standing]) > 0.9
+
+
+# -- the hostile-input contract with the new defaults (rail, gate 0.9999) -----------------
+
+EPOCH_NS = 1_700_000_000 * NS
+PERIOD_NS = NS // 10
+HOSTILE = {
+    # name: (reason, changes to a valid next measurement)
+    'wrong frame': ('wrong_frame', {'frame_id': 'map'}),
+    'NaN position': ('non_finite', {'position': math.nan}),
+    '+Inf position': ('non_finite', {'position': math.inf}),
+    'NaN variance': ('non_finite', {'variance': math.nan}),
+    'Inf variance': ('non_finite', {'variance': math.inf}),
+    'zero variance': ('bad_variance', {'variance': 0.0}),
+    'negative variance': ('bad_variance', {'variance': -1.0}),
+    'zero stamp': ('zero_stamp', {'stamp': 0}),
+    'future stamp': ('future_stamp', {'stamp_offset': int(1.5 * NS)}),
+    'duplicate of the newest': ('duplicate_stamp', {'stamp_offset': -PERIOD_NS}),
+    'duplicate in the history': ('duplicate_stamp', {'stamp_offset': -4 * PERIOD_NS}),
+    'stale': ('stale_stamp', {'stamp_offset': -12 * PERIOD_NS}),
+    'a 10⁶ m outlier': ('outlier', {'position_offset': 1e6}),
+    'a 10 m outlier': ('outlier', {'position_offset': 10.0}),
+    'a 10⁶ m outlier, tiny variance': ('outlier', {'position_offset': 1e6, 'variance': 1e-12}),
+    'overflowing position': ('numerical', {'position': 1e300}),
+}
+
+
+def _state_bytes(estimator):
+    """Return the whole filter state as bytes (the IMM's probabilities included)."""
+    x, P = estimator.state
+    mu = estimator.mode_probabilities()[1]
+    history = tuple((e.stamp_ns, e.x.tobytes(), e.P.tobytes(), e.kind)
+                    for e in estimator._history)
+    return x.tobytes(), P.tobytes(), mu.tobytes(), estimator.last_stamp_ns, history
+
+
+@pytest.mark.parametrize('name', HOSTILE)
+def test_hostile_inputs_are_rejected_counted_and_change_nothing_with_the_defaults(name, metro):
+    """The node's defaults (rail, gate 0.9999, history 1 s) keep the input contract."""
+    reason, change = HOSTILE[name]
+    stamps, zs, _ = metro
+    stamps = [EPOCH_NS + s for s in stamps[:31]]
+    settings = dataclasses.replace(NODE_DEFAULTS, expected_frame_id='odom')
+    assert (settings.preset, settings.gate_probability, settings.history_s) == (
+        'rail', 0.9999, 1.0)
+
+    def fed():
+        estimator = StreamEstimator(settings)
+        for stamp, z in zip(stamps[:30], zs[:30]):
+            estimator.process(stamp, z, 1.0, frame_id='odom')
+        return estimator
+    estimator, twin = fed(), fed()
+    before = _state_bytes(estimator)
+    stamp = change.get('stamp', stamps[30] + change.get('stamp_offset', 0))
+    position = change.get('position', zs[30] + change.get('position_offset', 0.0))
+    with pytest.raises(Rejected) as raised:
+        estimator.process(stamp, position, change.get('variance', 1.0),
+                          frame_id=change.get('frame_id', 'odom'), now_ns=stamps[29])
+    assert raised.value.reason == reason and raised.value.reset is None
+    rejections = estimator.stats().rejections
+    assert rejections[reason] == 1 and sum(rejections.values()) == 1
+    assert sum(estimator.stats().resets.values()) == 0
+    assert _state_bytes(estimator) == before
+    # It keeps running exactly as if the bad input had never come.
+    step = estimator.process(stamps[30], zs[30], 1.0, frame_id='odom', now_ns=stamps[29])
+    np.testing.assert_array_equal(step.x, twin.process(stamps[30], zs[30], 1.0).x)
+    assert np.all(np.isfinite(step.x)) and np.all(np.isfinite(step.predicted_P))
+
+
+def test_default_settings_are_the_rail_preset_with_the_gate_and_the_seed_is_a_switch_away():
+    core = EstimatorSettings()
+    assert (core.preset, core.initialization, core.gate_probability) == (
+        'rail', 'first_measurement', 0.9999)
+    assert StreamEstimator().gate_threshold == pytest.approx(15.1367, abs=1e-4)
+    seed = EstimatorSettings(**SEED_SWITCH)
+    assert (seed.preset, seed.initialization, seed.gate_probability) == ('train', 'prior', 1.0)
+    assert StreamEstimator(seed).gate_threshold == math.inf
+
+
+def test_predict_to_is_the_published_prediction_and_changes_nothing(metro):
+    stamps, zs, _ = metro
+    estimator = StreamEstimator(RAIL)
+    with pytest.raises(ValueError, match='no state yet'):
+        estimator.predict_to(stamps[0])
+    step = _feed(estimator, stamps[:200], zs[:200])[-1]
+    before = _state_bytes(estimator)
+    x, P = estimator.predict_to(step.prediction_stamp_ns)
+    np.testing.assert_array_equal(x, step.predicted_x)
+    np.testing.assert_array_equal(P, step.predicted_P)
+    x[0] = -1.0  # a copy
+    assert _state_bytes(estimator) == before
+    with pytest.raises(ValueError, match='before the newest'):
+        estimator.predict_to(stamps[150])
+    # The train's KF too (its x⁻ = F x over the horizon).
+    train = StreamEstimator(EstimatorSettings(**SEED_SWITCH))
+    step = _feed(train, stamps[:20], zs[:20])[-1]
+    np.testing.assert_array_equal(train.predict_to(step.prediction_stamp_ns)[0],
+                                  step.predicted_x)

@@ -16,7 +16,8 @@ import pytest
 
 START_NS = 1_700_000_000 * NS_PER_S
 RATE_HZ = 10.0
-ROBUST = EstimatorSettings(process_noise_density=0.1, history_s=1.0, gate_probability=0.9999)
+ROBUST = EstimatorSettings(preset='train', process_noise_density=0.1, history_s=1.0,
+                           gate_probability=0.9999)
 
 
 def _faulty_stream(settings, n=2000, seed=7):

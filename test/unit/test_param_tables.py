@@ -46,8 +46,9 @@ def test_the_estimator_table_is_the_settings_and_the_node_options():
     settings = {field.name for field in dataclasses.fields(EstimatorSettings)}
     assert set(ESTIMATOR.names) == settings | set(NodeOptions._fields)
     assert not settings & set(NodeOptions._fields)
-    assert DEFAULTS == dataclasses.replace(EstimatorSettings(), history_s=1.0,
-                                           gate_probability=1.0)
+    # The node differs from the core only by out-of-sequence fusion (history_s 1).
+    assert DEFAULTS == dataclasses.replace(EstimatorSettings(), history_s=1.0)
+    assert (DEFAULTS.preset, DEFAULTS.gate_probability) == ('rail', 0.9999)
 
 
 def test_the_simulator_table_is_the_stream_the_faults_and_the_options():
@@ -117,13 +118,13 @@ def test_the_config_file_reads_the_same_in_rcl_and_pyyaml_and_gives_the_defaults
 
 def test_a_tuned_params_file_lists_only_what_is_given():
     """params_file with values writes an estimator section that reads back to them."""
-    values = {'process_noise_density': 0.25, 'gate_probability': 0.999}
+    values = {'preset': 'train', 'process_noise_density': 0.25, 'gate_probability': 0.99}
     text = params_file([(ESTIMATOR, values)], comments=False)
-    assert text == ('estimator:\n  ros__parameters:\n    process_noise_density: 0.25\n'
-                    '    gate_probability: 0.999\n')
+    assert text == ('estimator:\n  ros__parameters:\n    preset: train\n'
+                    '    process_noise_density: 0.25\n    gate_probability: 0.99\n')
     config = load_estimator_config(read_params_file(io.StringIO(text)))
     assert (config.settings.process_noise_density, config.settings.gate_probability) == (
-        0.25, 0.999)
+        0.25, 0.99)
 
 
 # -- rcl's typing of values -------------------------------------------------------------
@@ -256,7 +257,7 @@ def test_params_files_and_overrides_make_the_nodes_configuration():
     ('initial_state:=1.0', 'invalid parameter initial_state:=1.0: must be of type '
      'DOUBLE_ARRAY, not DOUBLE'),
     # the node's own checks
-    ('initial_state:=[1.0]', 'invalid parameter: initial_state must have length 2, got 1'),
+    ('initial_state:=[1.0]', 'invalid parameter: initial_state must have length 6, got 1'),
     ('qos_reliability:=sometimes', 'invalid parameter: qos_reliability must be one of '
      "best_effort, reliable, got 'sometimes'"),
     ('filter:=foo', 'invalid parameter: filter must be one of kf, ekf, ukf, pf, bootstrap-pf, '
@@ -300,11 +301,15 @@ def test_runtime_changes_are_checked_against_the_running_configuration():
                                         'Max: 1.0, value: 0.3'),
             ({'max_consecutive_outliers': 0}, 'Parameter max_consecutive_outliers out of '
                                               'range. Min: 1, Max: 1000000, value: 0'),
-            ({'initial_covariance': [1.0, 2.0, 2.0, 1.0]}, 'positive semi-definite')]:
+            ({'initial_covariance': [1.0, 2.0, 2.0, 1.0]}, 'must have 6 (diagonal) or 36'),
+            # The identity with P[0, 1] = P[1, 0] = 2: symmetric, eigenvalue -1.
+            ({'initial_covariance': [1.0, 2.0] + [0.0] * 4 + [2.0, 1.0] + [0.0] * 4
+              + [0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0]
+              + [0.0] * 4 + [1.0, 0.0] + [0.0] * 5 + [1.0]}, 'positive semi-definite')]:
         with pytest.raises(ParameterError) as raised:
             changed_config(config, changes)
         assert reason in raised.value.reason, changes
-    assert changed_config(config, {'preset': 'train', 'use_sim_time': True}) == config
+    assert changed_config(config, {'preset': 'rail', 'use_sim_time': True}) == config
 
 
 def test_the_simulators_configuration_offline():

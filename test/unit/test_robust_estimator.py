@@ -11,8 +11,10 @@ import pytest
 
 PERIOD_NS = 100_000_000
 EPOCH_NS = 1_700_000_000 * NS_PER_S
-ROBUST = EstimatorSettings(process_noise_density=0.5, history_s=1.0, gate_probability=0.9999,
-                           expected_frame_id='odom', max_future_s=1.0)
+# The train's constant-velocity KF with noise (the rail default's contract:
+# test_estimator_rail.test_hostile_inputs_are_rejected_counted_and_change_nothing_...).
+ROBUST = EstimatorSettings(preset='train', process_noise_density=0.5, history_s=1.0,
+                           gate_probability=0.9999, expected_frame_id='odom', max_future_s=1.0)
 
 
 def _stream(n, seed=0, velocity=10.0, start_ns=EPOCH_NS):
@@ -256,7 +258,7 @@ def test_gate_threshold_comes_from_the_chi2_quantile_and_changes_live():
     """gate_threshold is the χ²(1) quantile of gate_probability; 1 disables the gate."""
     strict = dataclasses.replace(ROBUST, gate_probability=0.999)
     assert StreamEstimator(strict).gate_threshold == chi2_quantile(0.999, 1)
-    assert StreamEstimator(EstimatorSettings()).gate_threshold == math.inf
+    assert StreamEstimator(EstimatorSettings(gate_probability=1.0)).gate_threshold == math.inf
     stamps, positions = _stream(21)
     estimator = _fed(strict, stamps[:20], positions[:20])
     x, P = estimator.state

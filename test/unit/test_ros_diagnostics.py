@@ -12,12 +12,15 @@ import pytest
 
 COUNTS = NodeCounts(received=7, fused=5, rejected=2, set_state_refused=1,
                     controls_received=0, controls_rejected=0)
+# The node's defaults on the train's KF without a gate, as before issue 11 made the rail
+# preset the default (its regime probabilities: the node's own tests).
+TRAIN_NODE = dataclasses.replace(DEFAULTS, preset='train', gate_probability=1.0)
 ACTIVE = Activity(input_rate_hz=10.0, fused_rate_hz=9.5, age_s=0.05, ever_fused=True)
 
 
 def _estimator(updates=5, **settings):
-    """Return an estimator of the node's defaults after ``updates`` measurements at 10 Hz."""
-    estimator = StreamEstimator(dataclasses.replace(DEFAULTS, **settings))
+    """Return an estimator of TRAIN_NODE after ``updates`` measurements at 10 Hz."""
+    estimator = StreamEstimator(dataclasses.replace(TRAIN_NODE, **settings))
     for k in range(1, updates + 1):
         estimator.process(k * NS_PER_S // 10, 1.0 * k, 1.0)
     return estimator
@@ -50,7 +53,7 @@ def test_status_values_in_order():
 
 def test_waiting_and_timed_out():
     """Before any measurement: waiting; past timeout_s without a fused one: WARN, once worded."""
-    estimator = StreamEstimator(DEFAULTS)
+    estimator = StreamEstimator(TRAIN_NODE)
     waiting = filter_status(estimator, NodeCounts(0, 0, 0, 0, 0, 0),
                             Activity(0.0, 0.0, 0.5, False), 1.0, [])
     assert (waiting.level, waiting.message) == ('OK', 'waiting for measurements')
@@ -89,7 +92,7 @@ def test_ill_conditioned_covariance_warns_and_warnings_join():
 
 def test_control_presets_show_their_control_counts():
     """A preset with a control adds the node's and the estimator's control counts."""
-    estimator = StreamEstimator(dataclasses.replace(DEFAULTS, preset='car'))
+    estimator = StreamEstimator(dataclasses.replace(TRAIN_NODE, preset='car'))
     estimator.add_control(NS_PER_S, [1.0])
     counts = COUNTS._replace(controls_received=3, controls_rejected=1)
     values = dict(filter_status(estimator, counts, ACTIVE, 1.0, []).values)
@@ -108,7 +111,7 @@ def test_filter_specific_values():
         pf = _estimator(filter=kind, pf_particles=200, process_noise_density=0.1)
         values = dict(filter_status(pf, COUNTS, ACTIVE, 1.0, []).values)
         assert float(values['pf_ess']) <= 200 and int(values['pf_resample_count']) >= 0
-        fresh = StreamEstimator(dataclasses.replace(DEFAULTS, filter=kind))
+        fresh = StreamEstimator(dataclasses.replace(TRAIN_NODE, filter=kind))
         assert 'pf_ess' not in dict(filter_status(fresh, COUNTS, ACTIVE, 1.0, []).values)
 
 

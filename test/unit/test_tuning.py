@@ -92,6 +92,7 @@ def test_innovations_are_the_streaming_estimators(initialization):
     setting = NoiseSetting(0.8, (0.49,))
     ours = problem.innovations(setting)
     y, S = _estimator_innovations(EstimatorSettings(
+        preset='train', gate_probability=1.0,
         initialization=initialization, process_noise_density=0.8, measurement_variance=0.49),
         scenario.t_s, scenario.z[:, 0])
     # Both are the same arithmetic in another order: differences are rounding, ~1e-14
@@ -111,6 +112,7 @@ def test_innovations_of_a_two_dimensional_measurement():
     problem = TuningProblem(preset, [make_segment(preset, t, z)])
     ours = problem.innovations(NoiseSetting(0.05, (9.0, 1.0)))
     y, S = _estimator_innovations(EstimatorSettings(
+        gate_probability=1.0,
         preset='cv-position-velocity', process_noise_density=0.05, measurement_variance=9.0,
         measurement_velocity_variance=1.0), t, z[:, 0], velocity=z[:, 1])
     assert np.max(np.abs(ours.y - y)) <= 1e-9 * 400.0
@@ -312,13 +314,15 @@ def test_round_trip_tuned_estimator_passes_the_nis_check(q_true, noise_std_m):
     t, z = run(21, 2000)
     problem = TuningProblem(TRAIN, [make_segment(TRAIN, t, z)])
     setting = estimate_noise(problem, NoiseParameterisation(problem)).setting
-    tuned = EstimatorSettings(process_noise_density=setting.process_noise_density,
+    tuned = EstimatorSettings(preset='train', gate_probability=1.0,
+                              process_noise_density=setting.process_noise_density,
                               measurement_variance=setting.measurement_variances[0])
     t, z = run(22, 2000)
     nis = _nis_of_the_estimator(tuned, t, z, 4.0)
     low, high = chi2_mean_bounds(len(nis), 1, 0.99)
     assert low <= np.mean(nis) <= high
-    untuned = _nis_of_the_estimator(EstimatorSettings(), t, z, 4.0)
+    untuned = _nis_of_the_estimator(EstimatorSettings(preset='train', gate_probability=1.0),
+                                    t, z, 4.0)
     assert not low <= np.mean(untuned) <= high
 
 
