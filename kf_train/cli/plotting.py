@@ -12,6 +12,8 @@ functions are safe to call from a node or a test.
   ±2σ band against the truth and the measurements (bearing and range are shown
   converted to x and y).
 * :func:`track_figure`: the x-y track of the range-bearing preset.
+* ``--preset rail``: :func:`kf_train.cli.plot_rail.rail_figures`, the rail IMM over a
+  station stop (its 2-s prediction band and regime probabilities) and a whole run.
 
 From the command line, ``kf-train plot`` simulates each preset's seed scenario
 (:mod:`kf_train.sim.scenarios`) and draws it, or draws a ``kf-train replay`` output
@@ -25,7 +27,7 @@ from typing import Dict, List, Optional, Sequence
 
 from kf_train.batch import run_series
 from kf_train.filters import as_duration, as_finite_array, as_vector, RangeBearing
-from kf_train.presets import available_presets, load_preset, Preset
+from kf_train.presets import available_presets, load_preset, Preset, RAIL_PRESET_NAME
 from kf_train.sim import baselines, scenario_for_preset
 import numpy as np
 
@@ -372,8 +374,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument('--output-dir', '-o', metavar='DIR', default='.',
                         help='where to write the PNGs (default: the current directory)')
     parser.add_argument('--preset', metavar='NAME', action='append',
-                        choices=available_presets(),
-                        help='only this preset (repeatable; default: all of %(choices)s)')
+                        choices=available_presets() + [RAIL_PRESET_NAME],
+                        help='only this preset (repeatable; default: all but rail of '
+                             '%(choices)s; rail: rail.png and rail_run.png, the rail IMM '
+                             'on a metro run)')
     parser.add_argument('--seed', metavar='N', type=int, default=0,
                         help='random seed of the simulated noise (default 0)')
     parser.add_argument('--replay', metavar='OUT.csv', help='draw this replay output')
@@ -398,7 +402,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         else:
             paths = []
             for name in args.preset or available_presets():
-                paths += scenario_figures(args.output_dir, name, args.seed)
+                if name == RAIL_PRESET_NAME:
+                    from kf_train.cli.plot_rail import rail_figures
+                    paths += rail_figures(args.output_dir, args.seed)
+                else:
+                    paths += scenario_figures(args.output_dir, name, args.seed)
     except (ValueError, RuntimeError, OSError) as error:
         print(f'kf-train plot: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_ERROR

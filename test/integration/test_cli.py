@@ -6,7 +6,7 @@ import sys
 
 from kf_train import cli
 from kf_train.cli import demo
-from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
+from kf_train.estimator import EstimatorSettings, NS_PER_S, SEED_SWITCH, StreamEstimator
 from kf_train.ros import messages
 from kf_train.sim import TrainSimulation
 import numpy as np
@@ -101,7 +101,7 @@ class FakeProbe:
     def __init__(self, seed, samples=demo.SAMPLES, start_ns=1_700_000_000 * NS_PER_S):
         """Simulate seed 000 and run the core filter as the nodes would."""
         series = TrainSimulation(seed=seed).generate(samples)
-        estimator = StreamEstimator(EstimatorSettings(initialization='prior'))
+        estimator = StreamEstimator(EstimatorSettings(**SEED_SWITCH))
         self.received = {topic: [] for topic in demo.TOPICS}
         for k in range(samples):
             stamp_ns = start_ns + (k + 1) * NS_PER_S // 10
@@ -123,7 +123,7 @@ class FakeProbe:
 def test_demo_report_numbers_follow_seed_000(tmp_path):
     """The report's baselines are the seed's formulas; the CSV reads back exactly."""
     probe = FakeProbe(seed=3)
-    settings = EstimatorSettings(initialization='prior')
+    settings = EstimatorSettings(**SEED_SWITCH)
     series = demo.build_series(probe, 3, settings)
     assert series.offline_max_abs_diff == 0.0 and series.simulation_max_abs_diff == 0.0
     np.testing.assert_allclose(series.t_s, 0.1 * np.arange(1, 101), rtol=0, atol=1e-12)

@@ -42,7 +42,7 @@ def _stop(process):
     ('timeout_s:=0.0', ['timeout_s', '0.001']),
     ('nis_window:=0', ['nis_window', '1']),
     ('diagnostics_period_s:=1e9', ['diagnostics_period_s', '3600']),
-    ('initial_covariance:=[1.0,2.0,3.0]', ['initial_covariance', '2', '4']),
+    ('initial_covariance:=[1.0,2.0,3.0]', ['initial_covariance', '6', '36']),  # rail: 6 states
     ('reset_on_clock_jump:=maybe', ['reset_on_clock_jump']),
 ])
 def test_invalid_parameter_at_startup(domain_id, assignment, words):
