@@ -1,8 +1,7 @@
 """
 ``kf-train demo``: seed 000 over DDS, with both nodes in processes of their own.
 
-The demo starts the ``estimator`` with the seed switch (``preset:=train``,
-``initialization:=prior``, ``gate_probability:=1.0``: seed 000 exactly) and the
+The demo starts the ``estimator`` (``initialization:=prior``, seed 000's start) and the
 ``simulator`` (100 samples at 10 Hz) as separate processes in a ROS domain of this
 run's own, records every message with a probe node, and then checks and reports:
 
@@ -216,7 +215,7 @@ def _start_nodes(children: Dict[str, _Child], seed: int, env: Dict[str, str],
                  output_dir: Path) -> None:
     """Start the estimator and the simulator (holding its samples) into ``children``."""
     # The estimator first: its subscription exists before the simulator looks.
-    # Seed 000 is the seed switch away from the node's (rail) defaults.
+    # Seed 000 is one switch away from the defaults (the rail preset, the gate on).
     children['estimator'] = _start('estimator', [
         '-p', 'preset:=train', '-p', 'initialization:=prior', '-p', 'gate_probability:=1.0',
         '-p', f'horizon_s:={HORIZON_S!r}'], env, output_dir)

@@ -221,7 +221,7 @@ class EstimateWriter:
     """
 
     def __init__(self, frame_id: str, child_frame_id: str, dim_x: int):
-        """Prefill a message for a [position, velocity, ...] (dim_x >= 2) or [position] state."""
+        """Prefill a message for a [position, velocity] (dim_x 2) or [position] state."""
         self.dim_x = dim_x
         self.msg = to_odometry_msg(0, frame_id, child_frame_id, 0.0, 0.0, 0.0,
                                    UNESTIMATED_VARIANCE)
@@ -247,9 +247,9 @@ class EstimateWriter:
             self._position.x = float(x[0])
             self._pose_covariance[0] = float(P[0][0])
             return self.msg
-        position, velocity = x.tolist()[:2]  # rail: then acceleration, command, A, B
-        self._position.x = position
-        self._velocity.x = velocity
+        # x[0], x[1]: a state may hold more (the rail preset's acceleration, ...).
+        self._position.x = float(x[0])
+        self._velocity.x = float(x[1])
         self._pose_covariance[0] = P[0][0]
         self._twist_covariance[0] = P[1][1]
         return self.msg

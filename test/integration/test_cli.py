@@ -6,7 +6,7 @@ import sys
 
 from kf_train import cli
 from kf_train.cli import demo
-from kf_train.estimator import EstimatorSettings, NS_PER_S, SEED_SWITCH, StreamEstimator
+from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
 from kf_train.ros import messages
 from kf_train.sim import TrainSimulation
 import numpy as np
@@ -15,6 +15,8 @@ from ros_helpers import isolated_env
 
 VENV_BIN = os.path.dirname(sys.executable)
 KF_TRAIN = os.path.join(VENV_BIN, 'kf-train')
+SEED000_SETTINGS = EstimatorSettings(preset='train', initialization='prior', gate_probability=1.0)
+"""The demo's seed 000 estimator: the train preset, the seed's prior, the gate off."""
 
 
 def test_usage_lists_every_command(capsys):
@@ -101,7 +103,7 @@ class FakeProbe:
     def __init__(self, seed, samples=demo.SAMPLES, start_ns=1_700_000_000 * NS_PER_S):
         """Simulate seed 000 and run the core filter as the nodes would."""
         series = TrainSimulation(seed=seed).generate(samples)
-        estimator = StreamEstimator(EstimatorSettings(**SEED_SWITCH))
+        estimator = StreamEstimator(SEED000_SETTINGS)
         self.received = {topic: [] for topic in demo.TOPICS}
         for k in range(samples):
             stamp_ns = start_ns + (k + 1) * NS_PER_S // 10
@@ -123,7 +125,7 @@ class FakeProbe:
 def test_demo_report_numbers_follow_seed_000(tmp_path):
     """The report's baselines are the seed's formulas; the CSV reads back exactly."""
     probe = FakeProbe(seed=3)
-    settings = EstimatorSettings(**SEED_SWITCH)
+    settings = SEED000_SETTINGS
     series = demo.build_series(probe, 3, settings)
     assert series.offline_max_abs_diff == 0.0 and series.simulation_max_abs_diff == 0.0
     np.testing.assert_allclose(series.t_s, 0.1 * np.arange(1, 101), rtol=0, atol=1e-12)

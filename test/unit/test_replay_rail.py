@@ -140,7 +140,7 @@ def test_compare_runs_the_rail_imm_on_rail_runs():
     assert 'set by the first measurement' in format_table(comparison)
     with pytest.raises(ValueError, match='IMM of four Kalman filters'):
         run_comparison('rail', runs=1, kinds=['ukf'])
-    with pytest.raises(ValueError, match="runs must be"):
+    with pytest.raises(ValueError, match='runs must be'):
         run_comparison('rail', runs=0)
 
 
