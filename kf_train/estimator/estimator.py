@@ -1,11 +1,14 @@
 """
 The live estimator as a pure state machine: stamped measurements and controls in, estimates out.
 
-It runs any 1-D preset of :mod:`kf_train.presets.loader` on a stream (``preset``:
-``train`` by default, ``car``, ``car-exact``, ``robot``, ``robot-exact``,
-``cv-position``, ``cv-position-velocity``, or the path of a preset YAML file of the
-same shape; see :func:`check_live_preset`), and the rail preset (``rail``: a train
-in four regimes, stand/accelerate/cruise/brake, as an IMM; docs/rail.md). The preset
+It runs the rail preset (``preset``: ``rail``, the default: a train in four regimes,
+stand/accelerate/cruise/brake, as an IMM; docs/rail.md) and any 1-D preset of
+:mod:`kf_train.presets.loader` on a stream (``train``, ``car``, ``car-exact``,
+``robot``, ``robot-exact``, ``cv-position``, ``cv-position-velocity``, or the path of a
+preset YAML file of the same shape; see :func:`check_live_preset`). The defaults are
+for real data: rail, the χ² gate on (0.9999), first_measurement;
+:data:`~kf_train.estimator.settings.SEED_SWITCH` (preset train, prior, no gate)
+reproduces seed 000. The preset
 brings the model, the initial state and covariance, the nominal period and the
 horizon; a setting that is not None overrides the preset's value.
 
@@ -134,7 +137,7 @@ import numpy as np
 
 
 class StreamEstimator:
-    """Fuses stamped measurements (and controls) of a 1-D preset: the train by default."""
+    """Fuses stamped measurements (and controls): the rail preset by default."""
 
     fast_path = True
     """Run the train's KF in closed form (see :mod:`~kf_train.estimator.adapters`)."""
