@@ -91,7 +91,13 @@ def test_choose_keeps_derived_values_for_the_files_own_choice():
     table = estimator_params.PARAMETERS
     values = {'initial_state': [1.0, 2.0], 'horizon_s': 3.0, 'history_s': 0.5}
     assert launch_params.choose(table, values, '') == values
-    assert launch_params.choose(table, values, 'train') == dict(values, preset='train')
+    # The default preset is rail (issue 11): choosing it keeps the file's values, choosing
+    # another one (train) leaves out what was made for the default.
+    assert launch_params.choose(table, values, 'rail') == dict(values, preset='rail')
+    assert launch_params.choose(table, values, 'train') == {'history_s': 0.5,
+                                                            'preset': 'train'}
+    assert launch_params.choose(table, dict(values, preset='train'), 'train') == dict(
+        values, preset='train')
     changed = launch_params.choose(table, dict(values, preset='car'), 'robot')
     assert changed == {'history_s': 0.5, 'preset': 'robot'}
     assert 'initial_state' in values  # the input is not changed
