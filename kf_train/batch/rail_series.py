@@ -15,7 +15,9 @@ gives for the same stamps, bit for bit. (The seeds' "initial estimate at t0" wou
 pin a train at position 0 ± 1 m; a train's first fix is anywhere on the line.)
 
 No χ² gate offline (as for every preset in ``replay``), and no RTS smoother: an IMM
-is a mixture, not one linear-Gaussian model.
+is a mixture, not one linear-Gaussian model. Rows before an object's first measurement (empty
+cells, ``updated`` 0) carry the preset's prior unchanged, position 0 included: there
+is no estimate yet, and those rows say nothing about where the train is.
 """
 
 from typing import Dict, Optional, Tuple

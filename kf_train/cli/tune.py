@@ -17,16 +17,22 @@ innovations, maximised with scipy by :mod:`kf_train.cli.noise_fit`), and prints:
   RMSE of the prediction ``--horizon`` ahead (the preset's, else 2 s) before and after.
 
 It writes PARAMS.yaml, ``estimator: ros__parameters:`` with the preset and the tuned
-values, for ``estimator --ros-args --params-file PARAMS.yaml``. ``kf-train replay``
-takes no params file (its ``--config`` is a preset file): ``--preset-output FILE``
-also writes the tuned preset for ``kf-train replay --config FILE``.
+values, for ``estimator --ros-args --params-file PARAMS.yaml`` and for ``kf-train
+replay BAG --params-file PARAMS.yaml``; ``--preset-output FILE`` also writes the tuned
+preset, for ``kf-train replay TABLE --config FILE``.
 
-Input: the CSV of ``kf-train replay`` (``t``, the measurement columns, ``u`` where the
-preset has a control, optionally ``id``: every id is an object of its own, all
-sharing the noise), plus optional truth columns ``true_<state>``. Readers are
-chosen by :func:`reader_for`; a rosbag2 reader plugs in there when bag reading exists.
-R is estimated (a CSV does not carry the measurements' variance) unless ``--fix-r``
-gives it. Bad input is reported in one line (file, line, column) with exit code 1.
+Input: what ``kf-train replay`` reads (:mod:`kf_train.cli.tune_inputs`): a CSV
+(``t``, the measurement columns, ``u`` where the preset has a control, optionally
+``id``: every id is an object of its own, all sharing the noise), Parquet with the
+same columns, plus optional truth columns ``true_<state>``; or a rosbag2 bag (a
+directory, ``.mcap`` or ``.db3``), its topics chosen as ``kf-train replay BAG`` chooses
+them (``--topic``, ``--control-topic``), truth from ``--truth-topic`` (default
+``ground_truth`` when there). A table does not carry the measurements' variance, so R
+is estimated unless ``--fix-r`` gives it. A bag does: when every message carries the
+same variance, that is R (the node uses the message's variance) and q alone is
+estimated, unless ``--estimate-r``; when the variances vary, one R is estimated.
+Bad input is reported in one line (file, line or row, column; the bag and its topic)
+with exit code 1.
 """
 
 import argparse
@@ -35,15 +41,15 @@ import math
 import os
 import sys
 import time
-from typing import Callable, List, NamedTuple, Optional, Sequence
+from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch import (
-    ConsistencyReport, group_rows, is_constant_velocity, nis_consistency, NoiseParameterisation,
-    NoiseSetting, prediction_errors, PredictionReport, Segment, STATE_UNITS, TuningProblem,
+    ConsistencyReport, is_constant_velocity, nis_consistency, NoiseParameterisation,
+    NoiseSetting, prediction_errors, PredictionReport, STATE_UNITS, TuningProblem,
     VARIANCE_PARAMETERS)
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
-from kf_train.cli.replay import (
-    check_bank_times, check_times, InputError, read_table, required_columns, write_atomic)
+from kf_train.cli.replay import write_atomic
+from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
 from kf_train.presets import (
     available_presets, load_preset, load_preset_file, Preset, preset_from_mapping)
 import numpy as np
@@ -53,76 +59,6 @@ EXIT_BAD_INPUT = 1
 EXIT_USAGE = 2
 DEFAULT_HORIZON_S = 2.0
 CHECK_CONFIDENCE = 0.99
-TRUTH_PREFIX = 'true_'
-BAG_SUFFIXES = ('.mcap', '.db3')
-
-
-# ---------------------------------------------------------------------------
-# Input readers: path -> segments
-# ---------------------------------------------------------------------------
-
-def _read_bytes(path: str) -> bytes:
-    """Return the input's bytes ('-': standard input)."""
-    if path == '-':
-        return sys.stdin.buffer.read() if hasattr(sys.stdin, 'buffer') else \
-            sys.stdin.read().encode('utf-8')
-    try:
-        with open(path, 'rb') as stream:
-            return stream.read()
-    except OSError as error:
-        raise InputError(f'{path}: cannot read: {error.strerror}') from None
-
-
-def _header(data: bytes) -> List[str]:
-    """Return the header's column names (the table reader checks it properly)."""
-    line = data.split(b'\n', 1)[0].lstrip(b'\xef\xbb\xbf').decode('utf-8', 'replace')
-    return [name.strip().strip('"').strip() for name in line.split(',')]
-
-
-def read_csv(path: str, preset: Preset) -> List[Segment]:
-    """Return the segments of a replay CSV (one per id), with truth where given."""
-    data = _read_bytes(path)
-    header = _header(data)
-    truth_columns = [TRUTH_PREFIX + s for s in preset.state_names if TRUTH_PREFIX + s in header]
-    table = read_table(path, required_columns(preset) + [(c,) for c in truth_columns], data,
-                       ids=True)
-    if table.rows == 0:
-        raise InputError(f'{path}: no rows: nothing to estimate from')
-    t = table.columns['t']
-    first = float(np.min(t))
-    if table.ids is None:
-        check_times(path, t, table.lines, first)
-        groups = group_rows(np.zeros(table.rows, dtype=np.int64))
-    else:
-        groups = group_rows(table.ids)
-        check_bank_times(path, t, table.lines, groups, table.id_labels, first)
-    z = np.column_stack([table.columns[next(n for n in names if n in table.columns)]
-                         for names in preset.measurement_columns()])
-    u = (np.column_stack([table.columns[n] for n in preset.control_columns()])
-         if preset.dim_u else None)
-    truth = None
-    if truth_columns:
-        truth = np.full((table.rows, preset.dim_x), np.nan)
-        for i, state in enumerate(preset.state_names):
-            if TRUTH_PREFIX + state in table.columns:
-                truth[:, i] = table.columns[TRUTH_PREFIX + state]
-    segments = []
-    for k in range(groups.counts.shape[0]):
-        rows = groups.rows(k)
-        segments.append(Segment(t[rows], z[rows], None if u is None else u[rows],
-                                None if truth is None else truth[rows]))
-    return segments
-
-
-InputReader = Callable[[str, Preset], List[Segment]]
-
-
-def reader_for(path: str) -> InputReader:
-    """Return the reader of an input path; a bag (directory, .mcap, .db3) is refused."""
-    if path != '-' and (os.path.isdir(path) or path.lower().endswith(BAG_SUFFIXES)):
-        raise InputError(f'{path}: bag input is not supported yet; export the measurements '
-                         'to a CSV (t, z_position, ...) and tune that')
-    return read_csv
 
 
 # ---------------------------------------------------------------------------
@@ -196,12 +132,12 @@ class TuneReport(NamedTuple):
 
 
 def run_tuning(problem: TuningProblem, parameterisation: NoiseParameterisation,
-               horizon_s: float, confidence: float) -> TuneReport:
-    """Estimate, then check the preset's own noise (before) against the estimate (after)."""
+               horizon_s: float, confidence: float,
+               before: NoiseSetting = NoiseSetting()) -> TuneReport:
+    """Estimate, then check the untuned noise (``before``) against the estimate (after)."""
     start = time.perf_counter()
     result = estimate_noise(problem, parameterisation, confidence=confidence)
     seconds = time.perf_counter() - start
-    before = NoiseSetting()
     after = result.setting
     return TuneReport(
         result, before, problem.log_likelihood(before),
@@ -281,10 +217,14 @@ def _parser() -> argparse.ArgumentParser:
         description="Estimate the estimator's process noise density q and measurement "
                     'variance R from logged measurements (maximum likelihood of the '
                     "filter's innovations) and write them as a ROS params file.",
-        epilog='Input: the CSV of kf-train replay (t, z_<measurement>, u, optional id) '
-               'with optional truth columns true_<state> for the prediction RMSE. '
+        epilog='Input: what kf-train replay reads: a CSV or Parquet (t, z_<measurement>, '
+               'u, optional id, optional truth columns true_<state> for the prediction '
+               'RMSE), or a rosbag2 bag (a directory, .mcap or .db3: the '
+               'node measurement and control topics, truth from an Odometry topic). '
                'Needs scipy (pip install scipy).')
-    parser.add_argument('input', metavar='INPUT', help="the measurements ('-': stdin)")
+    parser.add_argument('input', metavar='INPUT',
+                        help="the measurements: CSV ('-': stdin), a .parquet file or a "
+                             'directory of them, or a rosbag2 bag (a directory, .mcap or .db3)')
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME', choices=available_presets(),
                         default=None, help='a shipped preset (default train): %(choices)s')
@@ -314,6 +254,18 @@ def _parser() -> argparse.ArgumentParser:
                              'else 2)')
     parser.add_argument('--confidence', metavar='P', type=float, default=0.95,
                         help='confidence of the intervals (0.95)')
+    bag = parser.add_argument_group('bag input (a rosbag2 directory, .mcap or .db3)')
+    bag.add_argument('--topic', metavar='NAME', default=None,
+                     help="the measurement topic (default: 'measurement' resolved in the "
+                          'bag, else the only one of the expected type), as kf-train replay')
+    bag.add_argument('--control-topic', metavar='NAME', default=None,
+                     help="the control topic, for presets with one (default: 'control')")
+    bag.add_argument('--truth-topic', metavar='NAME', default=None,
+                     help='an Odometry topic with the true state, for the prediction RMSE '
+                          "(default: 'ground_truth' if the bag has it)")
+    bag.add_argument('--estimate-r', action='store_true',
+                     help='estimate R even though the messages carry a variance (the '
+                          "sensor's stated covariance is a guess)")
     return parser
 
 
@@ -332,13 +284,46 @@ def _check_args(parser: argparse.ArgumentParser, args) -> None:
         parser.error(f'--t0 must be a finite number, got {args.t0}')
     if args.initial_state and args.initialization == 'first_measurement':
         parser.error('--initial-state needs --initialization prior')
+    if args.estimate_r and args.fix_r is not None:
+        parser.error('--estimate-r and --fix-r exclude each other')
+    if reader_for(args.input) is not read_bag:
+        for option in ('topic', 'control_topic', 'truth_topic'):
+            if getattr(args, option) is not None:
+                parser.error(f"--{option.replace('_', '-')} applies to a bag input only")
+
+
+def carried_variances(data: TuneInput, estimate_r: bool
+                      ) -> Tuple[Optional[Tuple[float, ...]], Optional[str]]:
+    """
+    Return (R the data carry, a note): R when every row carries the same variances.
+
+    None when the data carry none (a table), when ``estimate_r``, or when they vary
+    (then the note says one R is estimated instead).
+    """
+    variances = data.measurement_variances
+    if variances is None:
+        return None, None
+    low, high = np.min(variances, axis=0), np.max(variances, axis=0)
+    carried = ', '.join(f'{a:.4g}' if a == b else f'{a:.4g} to {b:.4g}'
+                        for a, b in zip(low.tolist(), high.tolist()))
+    if estimate_r:
+        return None, f'the messages carry the variance(s) {carried}; --estimate-r: R estimated'
+    if np.array_equal(low, high) and np.all(low > 0.0) and np.all(np.isfinite(low)):
+        return tuple(low.tolist()), (f'R = {carried}, as the messages carry it (the node '
+                                     'uses it); --estimate-r estimates it instead')
+    return None, (f'the messages carry varying variances ({carried}): one R is estimated, '
+                  'which measurement_variance makes the node use instead')
 
 
 def _setup(args):
-    """Return (preset spec, preset, problem, parameterisation) from the arguments."""
+    """Return (preset spec, preset, problem, parameterisation, input, notes)."""
     spec = os.path.abspath(args.config) if args.config else (args.preset or 'train')
     preset = load_preset_file(args.config) if args.config else load_preset(spec)
-    segments = reader_for(args.input)(args.input, preset)
+    topics = TopicOptions(args.topic, args.control_topic, args.truth_topic)
+    data = reader_for(args.input)(args.input, preset, topics)
+    segments = data.segments
+    carried, note = carried_variances(data, args.estimate_r)
+    notes = [line for line in (data.summary, note) if line]
     initialization = args.initialization or ('prior' if args.initial_state
                                              else 'first_measurement')
     problem = TuningProblem(preset, segments, initialization=initialization,
@@ -347,12 +332,16 @@ def _setup(args):
     if args.fix_r is not None and len(args.fix_r) != preset.dim_z:
         raise ValueError(f'--fix-r needs {preset.dim_z} variance(s), one per measurement '
                          f'({", ".join(preset.measurement_names)}), got {len(args.fix_r)}')
-    fixed = NoiseSetting(args.fix_q or 0.0, None if args.fix_r is None else tuple(args.fix_r))
+    fixed_r = tuple(args.fix_r) if args.fix_r is not None else carried
+    fixed = NoiseSetting(args.fix_q or 0.0, fixed_r)
     estimate_q = args.fix_q is None and is_constant_velocity(preset)
     parameterisation = NoiseParameterisation(
-        problem, process_noise=estimate_q, measurement_noise=args.fix_r is None,
+        problem, process_noise=estimate_q, measurement_noise=fixed_r is None,
         initial_state=args.initial_state, fixed=fixed)
-    return spec, preset, problem, parameterisation
+    # Before: what the node runs untuned, the messages' variance where constant.
+    before = NoiseSetting(0.0, carried if not args.estimate_r else
+                          carried_variances(data, False)[0])
+    return spec, preset, problem, parameterisation, before, notes
 
 
 def main(argv: Optional[List[str]] = None) -> int:
@@ -361,10 +350,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     _check_args(parser, args)
     try:
-        spec, preset, problem, parameterisation = _setup(args)
+        spec, preset, problem, parameterisation, before, notes = _setup(args)
         horizon_s = args.horizon or preset.horizon_s or DEFAULT_HORIZON_S
-        report = run_tuning(problem, parameterisation, horizon_s, args.confidence)
+        report = run_tuning(problem, parameterisation, horizon_s, args.confidence, before)
         setting = report.result.setting
+        # R the messages carry stays theirs (measurement_variance 0: the message's).
         r_given = args.fix_r is not None or bool(parameterisation.measured)
         params = ros_parameters(spec, preset, problem, setting, r_given)
         comments = [f'Written by kf-train tune on {datetime.date.today().isoformat()} from '
@@ -372,8 +362,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} '
                      f'interval [{_number(e.low)}, {_number(e.high)}]'
                      for e in report.result.estimates]
-        comments.append(f'Use: estimator --ros-args --params-file {os.path.basename(args.output)}')
-        text = format_report(report, problem, args.confidence)
+        comments += [f'input: {line}' for line in notes]
+        comments.append(f'Use: estimator --ros-args --params-file {os.path.basename(args.output)}'
+                        f' (or kf-train replay BAG --params-file {os.path.basename(args.output)})')
+        head, _, rest = format_report(report, problem, args.confidence).partition('\n')
+        text = '\n'.join([head] + [f'input: {line}' for line in notes] + [rest])
         if args.preset_output:
             write_atomic(args.preset_output, [tuned_preset_yaml(preset, setting)])
         write_atomic(args.output, [params_yaml(params, comments)])

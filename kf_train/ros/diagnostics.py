@@ -182,3 +182,46 @@ def _nis_values(nis: Sequence[float],
         return values, (f'inconsistent: noise parameters too large (mean NIS {mean:.3g} < '
                         f'{lower:.3g} over {count} updates)')
     return values, None
+
+
+# ---------------------------------------------------------------------------
+# The suggested process noise (kf_train.ros.noise_advice)
+# ---------------------------------------------------------------------------
+
+NOISE_WARNING = 'inconsistent: noise parameters too'
+"""How the NIS warning above starts: where the advice on q is added to the message."""
+
+
+def with_noise_suggestion(status: FilterStatus, suggestion, current_q: float,
+                          span_s: float) -> FilterStatus:
+    """
+    Return ``status`` with the q the recent window suggests (a NoiseSuggestion, or None).
+
+    Keys: ``suggested_process_noise_density`` [m²/s³], its 95 % interval
+    ``suggested_process_noise_density_low_95`` / ``_high_95`` (low 0 when the window
+    cannot tell q from 0; high inf when it cannot bound it), the window
+    (``suggested_process_noise_window``: innovations; ``..._window_s``: seconds) and
+    ``process_noise_advice`` (which way and how far to move ``process_noise_density``).
+    The message ends with that advice when ``current_q`` is outside the interval (the
+    NIS window cannot see a q far too large: the filter's innovations then stay about
+    as large as it predicts), and when the NIS check warns that the noise is too small
+    or too large (with q inside the interval: then R is the suspect). The level is not
+    changed: the NIS check decides it. No suggestion (None): the status as it is,
+    without these keys.
+    """
+    if suggestion is None:
+        return status
+    advice = suggestion.advice(current_q)
+    values = list(status.values) + [
+        ('suggested_process_noise_density', f'{suggestion.process_noise_density:.6g}'),
+        ('suggested_process_noise_density_low_95', f'{suggestion.low:.6g}'),
+        ('suggested_process_noise_density_high_95', f'{suggestion.high:.6g}'),
+        ('suggested_process_noise_window', str(suggestion.count)),
+        ('suggested_process_noise_window_s', f'{span_s:.3f}'),
+        ('process_noise_advice', advice)]
+    message = status.message
+    if not suggestion.low <= current_q <= suggestion.high:
+        message = f'{message}; {advice}'
+    elif NOISE_WARNING in message:
+        message = f'{message}; {advice}: check the measurement variance R'
+    return FilterStatus(status.level, message, values, status.timeout_warning)

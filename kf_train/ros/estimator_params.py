@@ -199,6 +199,12 @@ PARAMETERS_NODE = (
     _integer('nis_window', 100,
              'How many of the latest updates the mean NIS in /diagnostics is taken over.',
              (1, 1_000_000), group=_G_NODE),
+    _integer('noise_suggestion_window', 300,
+             'How many of the latest fused measurements the suggested process_noise_density '
+             'in /diagnostics is estimated from (maximum likelihood, recomputed once per '
+             'window; shown from 30 on, with which way and how far to move q). 0 turns '
+             'it off; below 10 counts as 10. Presets without q (robot) never show it.',
+             (0, 3000), group=_G_NODE),
     ParamSpec('reset_on_clock_jump', 'bool', True,
               'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
               'loop, a simulation reset).', group=_G_NODE),
@@ -233,6 +239,7 @@ class NodeOptions(NamedTuple):
     timeout_s: float
     diagnostics_period_s: float
     nis_window: int
+    noise_suggestion_window: int
     reset_on_clock_jump: bool
     qos_reliability: str
     qos_depth: int

@@ -25,8 +25,10 @@ import math
 from typing import Callable, NamedTuple, Optional
 
 from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
-from kf_train.ros.diagnostics import Activity, filter_status, FilterStatus, NodeCounts
+from kf_train.ros.diagnostics import (
+    Activity, filter_status, FilterStatus, NodeCounts, with_noise_suggestion)
 from kf_train.ros.estimator_params import changed_config, EstimatorConfig, NOISE_AND_GATE
+from kf_train.ros.noise_advice import NoiseAdvisor
 import numpy as np
 
 WARN_THROTTLE_S = 5.0
@@ -89,6 +91,7 @@ class EstimatorSession:
         self._last_fused_mono = None
         self._received_at_tick = self._fused_at_tick = 0
         self._last_clock_ns = 0
+        self.noise = self._noise_advisor()
 
     # -- configuration ------------------------------------------------------------------
 
@@ -102,7 +105,16 @@ class EstimatorSession:
             self.nis = collections.deque(self.nis, maxlen=self.config.options.nis_window)
         if NOISE_AND_GATE & changes.keys():
             self.nis.clear()  # the old NIS values judged the old tuning
+        if {'measurement_variance', 'measurement_velocity_variance'} & changes.keys():
+            self.noise.invalidate()   # the suggestion is for the R the node uses
+        if {'noise_suggestion_window', 'first_velocity_std_mps'} & changes.keys():
+            self.noise = self._noise_advisor()
         return old
+
+    def _noise_advisor(self) -> NoiseAdvisor:
+        """Return an empty advisor for the suggested q (kf_train.ros.noise_advice)."""
+        return NoiseAdvisor(self.preset, self.config.options.noise_suggestion_window,
+                            self.config.settings.first_velocity_std_mps)
 
     # -- inputs -------------------------------------------------------------------------
 
@@ -136,11 +148,29 @@ class EstimatorSession:
             return NOTHING
         self.fused += 1
         self._last_fused_mono = self._monotonic_s()
+        if self.noise.active:
+            self._add_to_noise_window(stamp_ns, measurement)
         if step.update is None:
             return Outputs(step)
         self.innovations += 1
         self.nis.append(step.update.nis)
         return Outputs(step, step.measurement_stamp_ns, step.update)
+
+    def _add_to_noise_window(self, stamp_ns: int, measurement) -> None:
+        """Give the suggested-q window a fused measurement and its message's variances."""
+        if self.measures_velocity:
+            self.noise.add(stamp_ns, (measurement.position_m, measurement.velocity_mps),
+                           (measurement.variance_m2, measurement.velocity_variance_m2s2))
+        else:
+            self.noise.add(stamp_ns, (measurement.position_m,), (measurement.variance_m2,))
+
+    def _node_variances(self, message_variances) -> tuple:
+        """Return the R the node uses for a message's variances (the parameters override)."""
+        estimator = self.estimator
+        variances = (estimator.measurement_variance(message_variances[0]),)
+        if len(message_variances) > 1:
+            variances += (estimator.velocity_variance(message_variances[1]),)
+        return variances
 
     def on_control(self, control, now_ns: int) -> Outputs:
         """Take one control (``stamp_ns``, ``value``); the corrected estimate if it changed."""
@@ -152,6 +182,7 @@ class EstimatorSession:
             self.controls_rejected += 1
             self._warn_rejection('control.' + rejection.reason, str(rejection), 'control')
             return NOTHING
+        self.noise.add_control((control.value,))
         if step is not None and self._publishable(step):
             self.corrections += 1
             return Outputs(step)
@@ -210,6 +241,9 @@ class EstimatorSession:
                             self.controls_received, self.controls_rejected)
         status = filter_status(self.estimator, counts, activity,
                                self.config.options.timeout_s, self.nis)
+        status = with_noise_suggestion(status, self.noise.suggestion(self._node_variances),
+                                       self.config.settings.process_noise_density,
+                                       self.noise.span_s)
         if status.timeout_warning is not None and not self.timed_out:
             self._log('warning', status.timeout_warning)
             self.timed_out = True
@@ -248,5 +282,6 @@ class EstimatorSession:
     def _after_reset(self, reason: str, detail: str) -> None:
         """Log a reset the estimator went through and restart the NIS window."""
         self.nis.clear()
+        self.noise.clear()
         text = f'filter reset ({reason}): {detail}'
         self._log('info' if reason in ('manual', 'set_state') else 'warning', text)

@@ -40,7 +40,7 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     table = [line for line in out.splitlines() if line.startswith('| ')]
     assert len([line for line in out.splitlines() if line.startswith('| Row |')]) == 1
     rows = {line.split('|')[1].strip() for line in table[1:]}
-    assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9'}
+    assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9a', '9b'}
     assert not [line for line in table if 'failed:' in line], table
     # Every live trial got through and exited; every start-up was measured.
     live = [line for line in table if line.startswith('| 4 |')]
@@ -58,7 +58,7 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     live_fleet = [line for line in table if line.startswith('| 8 |')]
     assert len(live_fleet) == 1 and 'estimators per core' in live_fleet[0], live_fleet
     # Row 9: the rail IMM's cost beside the KF's, and one target row per run (2 runs).
-    rail = [line for line in table if line.startswith('| 9 |')]
+    rail = [line for line in table if line.startswith(('| 9a |', '| 9b |'))]
     assert len([line for line in rail if '× the closed-form KF' in line]) == 3, rail
     runs = [line for line in rail if 'unseen run' in line]
     assert len(runs) == 2 and all('2σ coverage' in line and 'the best (' in line

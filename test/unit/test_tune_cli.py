@@ -154,14 +154,6 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, content, arg
     assert not os.path.exists(tmp_path / 'p.yaml')
 
 
-def test_bag_input_is_refused_in_one_line(tmp_path, capsys):
-    """A rosbag2 directory or .mcap file: not supported yet, said in one line."""
-    bag = tmp_path / 'run.mcap'
-    bag.write_bytes(b'\x89MCAP0\r\n')
-    assert main([str(bag), '-o', str(tmp_path / 'p.yaml')]) == 1
-    assert 'bag input is not supported yet' in capsys.readouterr().err
-
-
 def test_missing_scipy_is_one_line(tmp_path, capsys, monkeypatch):
     """Without scipy (an optional extra) tune says so in one line."""
     path = str(tmp_path / 'in.csv')
