@@ -3,6 +3,7 @@ Launch the simulator and the estimator: the whole kf_train pipeline on simulated
 
     ros2 launch kf_train kf_train.launch.py
     ros2 launch kf_train kf_train.launch.py scenario:=car namespace:=train1
+    ros2 launch kf_train kf_train.launch.py scenario:=rail
     ros2 launch kf_train kf_train.launch.py params_file:=my.yaml preset:=cv-position
     ros2 launch kf_train kf_train.launch.py --show-args
 
@@ -63,7 +64,7 @@ def generate_launch_description():
                               description='Follow /clock instead of the system clock'),
         DeclareLaunchArgument('scenario', default_value='',
                               description='What is simulated: train, car, car-exact, robot, '
-                              "robot-exact; empty: the params file's"),
+                              "robot-exact, rail; empty: the params file's"),
         DeclareLaunchArgument('preset', default_value='',
                               description="The estimator's preset (or a preset .yaml "
                               "path); empty: the scenario's, else the params file's"),

@@ -25,8 +25,9 @@ Output (``--output``):
   fused; empty when it fused none: the filter's initialisation, a correction after a
   late control). Numbers as Python's shortest round-trip ``repr``.
 * a directory or ``X.mcap``: a rosbag2 MCAP bag (:class:`kf_train.io.bagio_output.
-  OutputBag`) with ``estimate``, ``prediction``, ``innovation`` and ``/diagnostics``
-  (every ``diagnostics_period_s`` of record time, stamped with it), each message
+  OutputBag`) with ``estimate``, ``prediction``, ``innovation``, ``/diagnostics``
+  (every ``diagnostics_period_s`` of record time, stamped with it) and, for a preset
+  with regimes (``rail``), ``regime_probabilities`` after each estimate, each message
   recorded at the record time of the input that caused it.
 
 A bad bag, parameter or output path: a one-line error, exit 1, no output at all.
@@ -43,6 +44,7 @@ from kf_train.cli.progress import counted
 from kf_train.cli.replay import write_atomic
 from kf_train.estimator import StreamEstimator
 from kf_train.io import bagio, bagio_output, csvio
+from kf_train.ros import diagnostics as ros_diagnostics
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
 import numpy as np
 
@@ -191,8 +193,10 @@ def write_csv(run: BagRun, path: str, counts: dict) -> None:
 def write_bag(run: BagRun, path: str, counts: dict) -> None:
     """Replay into an MCAP bag at ``path`` (atomically)."""
     options = run.config.options
+    regimes = ros_diagnostics.regime_names(StreamEstimator(run.config.settings))
     with bagio_output.OutputBag(path, frame_id=options.frame_id,
-                                child_frame_id=options.child_frame_id) as out:
+                                child_frame_id=options.child_frame_id,
+                                regime_names=regimes) as out:
 
         def diagnostics(record_ns, status):
             out.write_diagnostics(record_ns, record_ns, 'estimator: filter', 'kf_train',
@@ -205,6 +209,8 @@ def write_bag(run: BagRun, path: str, counts: dict) -> None:
                 out.write_estimate(record_ns, step.stamp_ns, step.x, step.P)
                 out.write_prediction(record_ns, step.prediction_stamp_ns, step.predicted_x,
                                      step.predicted_P)
+                if regimes:  # as the node: after the step, the newest state's
+                    out.write_regimes(record_ns, run.session.estimator.mode_probabilities()[1])
             update = outputs.update
             if update is not None:
                 out.write_innovation(record_ns, outputs.innovation_stamp_ns,

@@ -13,6 +13,11 @@ run's own, records every message with a probe node, and then checks and reports:
   fed the same stamps and measurements).
 
 It writes ``report.txt``, ``series.csv`` and the nodes' logs to ``--output-dir``.
+
+Then (unless ``--skip-rail``) one rail run over DDS with the estimator's defaults:
+its 2-s prediction error against the truth next to CV and CA Kalman filters tuned in
+hindsight on the same run, the 2σ coverage, and a figure
+(:mod:`kf_train.cli.demo_rail`; outputs in ``--output-dir``/rail).
 Exit codes: 0 success, 1 a node failed, discovery timed out or samples were missing,
 2 bad command line, 130 interrupted.
 """
@@ -118,6 +123,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     parser.add_argument('--timeout-s', type=float, default=30.0,
                         help='how long to wait for all samples once discovery is done '
                              '(default: %(default)s)')
+    parser.add_argument('--skip-rail', action='store_true',
+                        help='show seed 000 only, without the rail run')
     try:
         args = parser.parse_args(argv)
     except SystemExit as exit_:  # --help, or a usage error already printed
@@ -133,6 +140,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     previous_sigterm = _raise_on_sigterm()
     try:
         report = run_demo(args.seed, Path(args.output_dir), args.timeout_s)
+        if not args.skip_rail:
+            print(report + '\n', flush=True)
+            from kf_train.cli import demo_rail  # (it builds on this module)
+            report = demo_rail.run_rail_demo(args.seed, Path(args.output_dir),
+                                             args.timeout_s)
     except DemoError as error:
         print(f'kf-train demo: error: {error}', file=sys.stderr)
         return EXIT_FAILED

@@ -27,14 +27,16 @@ The node's live-only parameters, decided offline:
 Output (``--output``):
 
 * ``X.mcap`` or a directory: a rosbag2 MCAP bag with ``measurement``
-  (PoseWithCovarianceStamped), ``ground_truth`` (Odometry) and, for car and robot,
-  ``control`` (AccelStamped / TwistStamped), the node's types and fields. Each
+  (PoseWithCovarianceStamped), ``ground_truth`` (Odometry), for car and robot
+  ``control`` (AccelStamped / TwistStamped) and for rail ``ground_truth_accel``
+  (AccelStamped, the true acceleration), the node's types and fields. Each
   message is recorded at its sample time; a measurement delayed by ``delay_s`` at
   sample time + delay_s, a reordered one with the next sample. ``kf-train replay
   X.mcap`` replays it with the estimator node's session.
 * ``X.csv``: one row per sample: ``t`` [s] (the stamp), ``z_position`` (empty when the
   sample was dropped), ``u`` (scenarios with a control), ``true_position``,
-  ``true_velocity``. ``kf-train replay X.csv --preset NAME`` reads it (a dropped
+  ``true_velocity`` and, for rail, ``true_acceleration``. ``kf-train replay X.csv
+  --preset NAME`` reads it (a dropped
   sample is a row without measurement; a backward clock jump makes ``t`` decrease,
   which a CSV replay refuses).
 
@@ -53,7 +55,7 @@ from typing import Iterator, List, NamedTuple, Optional
 from kf_train.cli.replay import write_atomic
 from kf_train.filters import NS_PER_S
 from kf_train.ros import param_spec, simulator_params
-from kf_train.sim import CONTROL_NAMES, FaultInjector, make_stream
+from kf_train.sim import ACCELERATION_SCENARIOS, CONTROL_NAMES, FaultInjector, make_stream
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -106,6 +108,9 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
                 yield event
         yield Event('ground_truth', sample_ns, stamp_ns, sample.index,
                     (sample.true_position_m, sample.true_velocity_mps))
+        if sample.true_acceleration_mps2 is not None:
+            yield Event('ground_truth_accel', sample_ns, stamp_ns, sample.index,
+                        (sample.true_acceleration_mps2,))
     yield from pending
 
 
@@ -114,8 +119,9 @@ def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
     from kf_train.io import bagio_simulation   # needs rosbags: imported when used
     options = config.options
     frame, child = options.frame_id, options.child_frame_id
-    with bagio_simulation.SimulationBag(path, CONTROL_NAMES[config.scenario],
-                                        clock=options.publish_clock) as bag:
+    with bagio_simulation.SimulationBag(
+            path, CONTROL_NAMES[config.scenario], clock=options.publish_clock,
+            truth_acceleration=config.scenario in ACCELERATION_SCENARIOS) as bag:
         for event in run_events(config, samples, start_ns):
             if event.topic == 'measurement':
                 bag.write_measurement(event.record_ns, event.stamp_ns, frame, *event.values)
@@ -123,6 +129,8 @@ def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
                 bag.write_control(event.record_ns, event.stamp_ns, child, *event.values)
             elif event.topic == 'clock':
                 bag.write_clock(event.record_ns, event.stamp_ns)
+            elif event.topic == 'ground_truth_accel':
+                bag.write_truth_accel(event.record_ns, event.stamp_ns, child, *event.values)
             else:
                 bag.write_truth(event.record_ns, event.stamp_ns, frame, child, *event.values)
         return dict(bag.counts)
@@ -131,7 +139,8 @@ def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
 def csv_header(scenario: str) -> List[str]:
     """Return the CSV columns for a scenario."""
     control = ['u'] if CONTROL_NAMES[scenario] is not None else []
-    return ['t', 'z_position'] + control + ['true_position', 'true_velocity']
+    acceleration = ['true_acceleration'] if scenario in ACCELERATION_SCENARIOS else []
+    return ['t', 'z_position'] + control + ['true_position', 'true_velocity'] + acceleration
 
 
 def _csv_chunks(config, samples: int, start_ns: int, counts: dict) -> Iterator[str]:
@@ -161,7 +170,7 @@ def _csv_line(row: list, position_m: Optional[float]) -> str:
 def write_csv(config, samples: int, path: str, start_ns: int) -> dict:
     """Write the run as a CSV at ``path`` (atomically); return the message counts."""
     _check_directory(path)
-    counts = {'measurement': 0, 'ground_truth': 0, 'control': 0}
+    counts = {'measurement': 0, 'ground_truth': 0, 'control': 0, 'ground_truth_accel': 0}
     try:
         write_atomic(path, _csv_chunks(config, samples, start_ns, counts))
     except OSError as error:
@@ -253,7 +262,7 @@ def simulate(args: argparse.Namespace) -> str:
     writer = write_csv if to_csv else write_bag
     counts = writer(config, samples, args.output, start_ns)
     listed = ', '.join(f'{n} {topic}' for topic, n in counts.items()
-                       if n or topic != 'control')
+                       if n or topic in ('measurement', 'ground_truth'))
     return (f'{samples} samples of {config.scenario} (seed {config.seed}): {listed} '
             f'-> {args.output}')
 

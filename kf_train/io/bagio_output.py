@@ -2,8 +2,10 @@
 An MCAP rosbag2 bag of the estimator's outputs, written from plain values (no rclpy).
 
 :class:`OutputBag` writes ``estimate`` and ``prediction`` (nav_msgs/msg/Odometry),
-``innovation`` (geometry_msgs/msg/Vector3Stamped) and ``/diagnostics``
-(diagnostic_msgs/msg/DiagnosticArray), filled as the estimator node fills them
+``innovation`` (geometry_msgs/msg/Vector3Stamped), ``/diagnostics``
+(diagnostic_msgs/msg/DiagnosticArray) and, given regime names, ``regime_probabilities``
+(std_msgs/msg/Float64MultiArray, the names comma-separated in ``layout.dim[0].label``),
+filled as the estimator node fills them
 (kf_train/messages.py): position in ``pose.pose.position.x`` with its variance in
 ``pose.covariance[0]``, velocity in ``twist.twist.linear.x`` with its variance in
 ``twist.covariance[0]``, every other diagonal entry 1e9 (not estimated), orientation
@@ -138,8 +140,9 @@ class OutputBag(AtomicBag):
     """A bag being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], namespace: str = '', frame_id: str = 'odom',
-                 child_frame_id: str = 'base_link'):
+                 child_frame_id: str = 'base_link', regime_names: Sequence[str] = ()):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
+        self.regime_names = tuple(regime_names)
         self.path = Path(path)
         self.single_file = self.path.suffix == '.mcap'
         self.frame_id, self.child_frame_id = frame_id, child_frame_id
@@ -163,6 +166,9 @@ class OutputBag(AtomicBag):
                     ('prediction', prefix + 'prediction', ODOMETRY),
                     ('innovation', prefix + 'innovation', VECTOR3),
                     ('diagnostics', '/diagnostics', DIAGNOSTICS))}
+            if self.regime_names:
+                self._connections['regime_probabilities'] = self._writer.add_connection(
+                    prefix + 'regime_probabilities', MULTIARRAY, typestore=TYPESTORE)
         except BaseException:
             shutil.rmtree(self._temporary, ignore_errors=True)
             raise
@@ -222,6 +228,24 @@ class OutputBag(AtomicBag):
             raise _stamp_error(stamp_ns) from None
         self._write_raw(self._connections['diagnostics'], record_ns, raw)
         self.counts['diagnostics'] += 1
+
+    def write_regimes(self, record_ns: int, probabilities) -> None:
+        """Write a ``regime_probabilities`` (the bag's regime_names, in their order)."""
+        raw = TYPESTORE.serialize_cdr(regime_message(self.regime_names, probabilities),
+                                      MULTIARRAY)
+        self._write_raw(self._connections['regime_probabilities'], record_ns, raw)
+        self.counts['regime_probabilities'] += 1
+
+
+MULTIARRAY = 'std_msgs/msg/Float64MultiArray'
+
+
+def regime_message(names: Sequence[str], probabilities):
+    """Return the Float64MultiArray the estimator node publishes on regime_probabilities."""
+    dimension = _T['std_msgs/msg/MultiArrayDimension'](
+        label=','.join(names), size=len(names), stride=len(names))
+    layout = _T['std_msgs/msg/MultiArrayLayout'](dim=[dimension], data_offset=0)
+    return _T[MULTIARRAY](layout=layout, data=np.array(probabilities, dtype=np.float64))
 
 
 def _odometry_values(x, P) -> Tuple[float, float, float, float]:

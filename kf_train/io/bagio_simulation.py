@@ -10,6 +10,8 @@ the node publishes (:mod:`kf_train.ros.simulator_node`, kf_train/ros/messages.py
 * ``ground_truth``: nav_msgs/msg/Odometry, position and velocity, variances 0;
 * ``control`` (scenarios with one): geometry_msgs/msg/AccelStamped (``accel.linear.x``)
   or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``;
+* ``ground_truth_accel`` (scenarios with a true acceleration: rail):
+  geometry_msgs/msg/AccelStamped, ``accel.linear.x`` [m/s²], frame ``child_frame_id``;
 * ``/clock`` (with ``clock=True``, as ``publish_clock``): rosgraph_msgs/msg/Clock.
 
 Each message is one serialized by rosbags once per type and frame, its numbers
@@ -81,7 +83,8 @@ class SimulationBag(AtomicBag):
     """A simulated run being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], control_name: Optional[str],
-                 namespace: str = '', clock: bool = False):
+                 namespace: str = '', clock: bool = False,
+                 truth_acceleration: bool = False):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
         if clock and CLOCK not in TYPESTORE.types:
             raise ValueError(f'publish_clock: the rosbags typestore has no {CLOCK}')
@@ -98,6 +101,8 @@ class SimulationBag(AtomicBag):
         topics = [('measurement', POSE), ('ground_truth', ODOMETRY)]
         if self.control_type is not None:
             topics.append(('control', self.control_type))
+        if truth_acceleration:
+            topics.append(('ground_truth_accel', ACCEL))
         if clock:
             topics.append(('/clock', CLOCK))
         try:
@@ -146,6 +151,9 @@ class SimulationBag(AtomicBag):
         if topic == 'clock':
             return PatchTemplate(_T[CLOCK](clock=_T['builtin_interfaces/msg/Time'](
                 sec=0, nanosec=0)), CLOCK, CLOCK_FIELDS)
+        if topic == 'ground_truth_accel':
+            return PatchTemplate(control_message(ACCEL, 0, frames[0], 0.0), ACCEL,
+                                 CONTROL_FIELDS[ACCEL])
         return PatchTemplate(control_message(self.control_type, 0, frames[0], 0.0),
                              self.control_type, CONTROL_FIELDS[self.control_type])
 
@@ -168,3 +176,9 @@ class SimulationBag(AtomicBag):
     def write_control(self, record_ns: int, stamp_ns: int, frame_id: str, value: float) -> None:
         """Write a control (the scenario's type)."""
         self._write_filled('control', (frame_id,), record_ns, stamp_ns, float(value))
+
+    def write_truth_accel(self, record_ns: int, stamp_ns: int, frame_id: str,
+                          acceleration_mps2: float) -> None:
+        """Write the true acceleration (AccelStamped, accel.linear.x)."""
+        self._write_filled('ground_truth_accel', (frame_id,), record_ns, stamp_ns,
+                           float(acceleration_mps2))

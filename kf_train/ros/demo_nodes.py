@@ -8,21 +8,24 @@ itself (processes, checks, report) is :mod:`kf_train.cli.demo`.
 """
 
 import time
-from typing import Dict, List, Optional, Sequence, Tuple
+from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter, parameter_value_to_python
 from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import QoSProfile
 from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import Float64MultiArray
 
 __all__ = ['Context', 'ExternalShutdownException', 'fetch_parameters', 'Probe', 'PROBE_DEPTH',
-           'set_parameter', 'start_probe', 'TOPICS']
+           'RAIL_TOPICS', 'set_parameter', 'start_probe', 'TOPICS']
 
 PROBE_DEPTH = 1000
 """Keep-last depth of the probe's subscriptions: never the bottleneck."""
@@ -35,6 +38,9 @@ TOPICS = {
     'prediction': Odometry,
 }
 """The topics the probe records, with their message types."""
+RAIL_TOPICS = {**TOPICS, 'ground_truth_accel': AccelStamped,
+               'regime_probabilities': Float64MultiArray, '/diagnostics': DiagnosticArray}
+"""What the probe records of a rail run: the true acceleration, the regimes, the status."""
 
 
 class Probe(Node):
@@ -42,9 +48,10 @@ class Probe(Node):
 
     def __init__(self, *, context: Optional[Context] = None,
                  node_name: str = 'kf_train_probe', namespace: str = '',
-                 depth: int = PROBE_DEPTH, subscribe_measurement: bool = True):
+                 depth: int = PROBE_DEPTH, subscribe_measurement: bool = True,
+                 topics: Mapping[str, type] = TOPICS):
         """
-        Subscribe to ground_truth, estimate, prediction and, unless told not to, measurement.
+        Subscribe to ``topics`` (TOPICS: ground_truth, estimate, prediction), measurement last.
 
         The topics are relative: in ``namespace`` they are the nodes' of that namespace.
         Subscribing to ``measurement`` late (:meth:`subscribe_measurement`) lets a
@@ -52,17 +59,19 @@ class Probe(Node):
         """
         super().__init__(node_name, context=context, namespace=namespace)
         self.qos = QoSProfile(depth=depth)
-        self.received: Dict[str, List] = {topic: [] for topic in TOPICS}
+        self.topics = dict(topics)
+        self.received: Dict[str, List] = {topic: [] for topic in self.topics}
         self._topic_subscriptions = {}
-        for topic in ('ground_truth', 'estimate', 'prediction'):
-            self._subscribe(topic)
+        for topic in self.topics:
+            if topic != 'measurement':
+                self._subscribe(topic)
         if subscribe_measurement:
             self.subscribe_measurement()
 
     def _subscribe(self, topic: str) -> None:
         """Record ``topic`` into ``self.received[topic]``."""
         self._topic_subscriptions[topic] = self.create_subscription(
-            TOPICS[topic], topic, self.received[topic].append, self.qos)
+            self.topics[topic], topic, self.received[topic].append, self.qos)
 
     def subscribe_measurement(self) -> None:
         """Start recording ``measurement`` (idempotent)."""
@@ -75,11 +84,12 @@ class Probe(Node):
 
     def sees_nodes(self) -> bool:
         """Return whether the graph shows both nodes' publishers and the estimator's input."""
-        return (all(self.count_publishers(topic) >= 1 for topic in TOPICS)
+        return (all(self.count_publishers(topic) >= 1 for topic in self.topics)
                 and self.count_subscribers('measurement') >= 1)
 
 
-def start_probe(context: Context, domain_id: int) -> Tuple[SingleThreadedExecutor, Probe]:
+def start_probe(context: Context, domain_id: int, topics: Mapping[str, type] = TOPICS,
+                events: bool = False) -> Tuple[SingleThreadedExecutor, Probe]:
     """
     Initialise ``context`` in ``domain_id`` and return (executor, probe) spinning in it.
 
@@ -88,8 +98,10 @@ def start_probe(context: Context, domain_id: int) -> Tuple[SingleThreadedExecuto
     """
     rclpy.init(context=context, domain_id=domain_id,
                signal_handler_options=SignalHandlerOptions.NO)
-    probe = Probe(context=context, subscribe_measurement=False)
-    executor = SingleThreadedExecutor(context=context)
+    probe = Probe(context=context, subscribe_measurement=False, topics=topics)
+    # rclpy's EventsExecutor takes several times the message rate of the default one:
+    # for a probe of hundreds of messages a second (a run played faster).
+    executor = (EventsExecutor if events else SingleThreadedExecutor)(context=context)
     executor.add_node(probe)
     return executor, probe
 

@@ -85,6 +85,7 @@ def filter_status(estimator, counts: NodeCounts, activity: Activity, timeout_s: 
     ]
     values += _count_values(estimator, counts)
     values += _filter_values(estimator)
+    values += regime_values(estimator)
     nis_values, nis_warning = _nis_values(nis, estimator.model.dim_z)
     values += nis_values
     warnings += [nis_warning] if nis_warning else []
@@ -135,6 +136,32 @@ def _filter_values(estimator) -> List[Tuple[str, str]]:
     values += [('gate_probability', f'{estimator.settings.gate_probability:g}'),
                ('gate_threshold', f'{estimator.gate_threshold:.6g}')]
     return values
+
+
+def regime_names(estimator) -> Tuple[str, ...]:
+    """Return the regimes of the estimator's model (the rail preset's IMM), else ()."""
+    imm = getattr(estimator.model, 'imm', None)
+    return tuple(imm.mode_names) if imm is not None else ()
+
+
+def regime_values(estimator) -> List[Tuple[str, str]]:
+    """
+    Return the regime values of a model with regimes: the likeliest, and each probability.
+
+    ``regime`` (the likeliest regime's name; ``unknown`` before the first measurement)
+    and ``regime.<name>`` (its probability after the newest fused measurement, 4
+    decimals). Nothing for a model without regimes.
+    """
+    names = regime_names(estimator)
+    if not names:
+        return []
+    current = estimator.mode_probabilities()
+    if current is None:
+        return [('regime', 'unknown')]
+    names, probabilities = current
+    likeliest = names[int(np.argmax(probabilities))]
+    return [('regime', likeliest)] + [(f'regime.{name}', f'{float(p):.4f}')
+                                      for name, p in zip(names, probabilities)]
 
 
 def _nis_values(nis: Sequence[float],

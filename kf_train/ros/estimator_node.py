@@ -76,8 +76,18 @@ Other interfaces:
   controls_received, controls.accepted / late / provisional,
   controls_rejected.<reason>), the mean NIS
   over the last ``nis_window`` updates against its χ² 99% bounds (WARN
-  "inconsistent: noise parameters too small/large"), the gate threshold and the
-  covariance condition number.
+  "inconsistent: noise parameters too small/large"), the gate threshold, the
+  covariance condition number and, for a preset with regimes (``rail``), the likeliest
+  ``regime`` and each ``regime.<name>`` probability.
+* ``regime_probabilities`` (std_msgs/Float64MultiArray; only presets with regimes:
+  ``rail``): after each published estimate, the probability of each regime after the
+  newest fused measurement, in ``data`` (summing to 1), the regime names in the order
+  of ``data`` comma-separated in ``layout.dim[0].label``
+  (``stand,accelerate,cruise,brake``). The message type has no header: it goes out
+  right after the estimate it belongs to. Why this type: a standard message that
+  carries the numbers and their names together, which PlotJuggler, ``ros2 topic
+  echo`` and rosbag2 tools read as they are; the same values, with the likeliest
+  regime, are in ``/diagnostics`` (``regime``, ``regime.<name>``).
 * ``~/reset`` (std_srvs/srv/Trigger): forget the state; the next measurement
   initialises the filter.
 * ``~/set_state`` (nav_msgs/Odometry, reliable): set the state to position
@@ -115,6 +125,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.estimator import NS_PER_S
 from kf_train.ros import messages
+from kf_train.ros.diagnostics import regime_names
 from kf_train.ros.estimator_params import (
     changed_config, DEFAULTS, estimator_config, FRAME_PARAMETERS, PARAMETERS)
 from kf_train.ros.param_spec import ParameterError
@@ -125,6 +136,7 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 __all__ = ['DEFAULTS', 'EstimatorNode', 'main']
@@ -215,6 +227,11 @@ class EstimatorNode(Node):
         self.estimate_pub = self.create_publisher(Odometry, 'estimate', QOS_DEPTH)
         self.prediction_pub = self.create_publisher(Odometry, 'prediction', QOS_DEPTH)
         self.innovation_pub = self.create_publisher(Vector3Stamped, 'innovation', QOS_DEPTH)
+        self.regime_names = regime_names(self.estimator)
+        self.regime_pub = None
+        if self.regime_names:
+            self.regime_pub = self.create_publisher(Float64MultiArray, 'regime_probabilities',
+                                                    QOS_DEPTH)
         self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                      QOS_DEPTH)
         self.set_state_subscription = self.create_subscription(
@@ -272,6 +289,10 @@ class EstimatorNode(Node):
             if self.prediction_pub.get_subscription_count():
                 self.prediction_pub.publish(self._prediction_writer.fill(
                     step.prediction_stamp_ns, step.predicted_x, step.predicted_P))
+            if self.regime_pub is not None and self.regime_pub.get_subscription_count():
+                regimes = self.estimator.mode_probabilities()  # the step's: the newest
+                if regimes is not None:
+                    self.regime_pub.publish(messages.to_regime_msg(*regimes))
         update = outputs.update
         if update is not None and self.innovation_pub.get_subscription_count():
             self.innovation_pub.publish(self._innovation_writer.fill(

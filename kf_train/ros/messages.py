@@ -15,6 +15,13 @@ The only module that knows message layouts. Conventions (REP 103/105):
   innovation y = z - H x⁻ [m], ``vector.y`` its variance S = H P⁻ Hᵀ + R [m²],
   ``vector.z`` the NIS y² / S [-]; stamped with the measurement's stamp.
 * Diagnostics (diagnostic_msgs/DiagnosticArray): one status, values as key/value text.
+* Regime probabilities (std_msgs/Float64MultiArray, presets with regimes: ``rail``):
+  ``data`` the probability of each regime [-], summing to 1; ``layout.dim`` one
+  dimension whose ``label`` lists the regimes in the order of ``data``, comma-separated
+  (``stand,accelerate,cruise,brake``), ``size`` = ``stride`` = their number,
+  ``data_offset`` 0 (:func:`to_regime_msg`, :func:`from_regime_msg`). The message has
+  no header: it goes out right after the estimate of the same step, whose stamp it
+  belongs to.
 * Controls (topic ``control``): the car's commanded acceleration as
   geometry_msgs/AccelStamped ``accel.linear.x`` [m/s²], the robot's measured speed as
   geometry_msgs/TwistStamped ``twist.linear.x`` [m/s]; every other field 0, frame the
@@ -40,6 +47,7 @@ from kf_train.estimator import NS_PER_S
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message
 from rosgraph_msgs.msg import Clock
+from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 UNESTIMATED_VARIANCE = 1e9
 """Variance [m² or rad²] given to dimensions the 1-D model does not estimate."""
@@ -356,3 +364,31 @@ def to_diagnostics_msg(stamp_ns: int, name: str, hardware_id: str, level: str,
 def to_clock_msg(stamp_ns: int) -> Clock:
     """Return a /clock message (rosgraph_msgs/Clock) for simulated time."""
     return Clock(clock=ns_to_stamp(stamp_ns))
+
+
+REGIME_SEPARATOR = ','
+"""Separates the regime names in a regime message's layout label."""
+
+
+def to_regime_msg(names: Sequence[str], probabilities) -> Float64MultiArray:
+    """Return the regime probabilities as a Float64MultiArray labelled with their names."""
+    names = tuple(names)
+    if len(names) != len(probabilities):
+        raise ValueError(f'{len(names)} regime names for {len(probabilities)} probabilities')
+    msg = Float64MultiArray()
+    msg.layout.dim = [MultiArrayDimension(label=REGIME_SEPARATOR.join(names), size=len(names),
+                                          stride=len(names))]
+    msg.layout.data_offset = 0
+    msg.data = [float(p) for p in probabilities]
+    return msg
+
+
+def from_regime_msg(msg: Float64MultiArray) -> Tuple[Tuple[str, ...], List[float]]:
+    """Return (regime names, probabilities) of a message :func:`to_regime_msg` made."""
+    if len(msg.layout.dim) != 1:
+        raise ValueError(f'a regime message has one dimension, got {len(msg.layout.dim)}')
+    names = tuple(msg.layout.dim[0].label.split(REGIME_SEPARATOR))
+    data = [float(p) for p in msg.data]
+    if len(names) != len(data):
+        raise ValueError(f'{len(names)} regime names for {len(data)} probabilities')
+    return names, data

@@ -22,8 +22,27 @@ rate_hz.
   (geometry_msgs/TwistStamped, ``twist.linear.x`` [m/s]): for ``robot`` the speed read
   at the previous sample, as the seed applies it; for ``robot-exact`` the reading of
   the interval itself. ``true_velocity`` is not used.
+* ``rail`` (issue 11): a jerk-limited run through stations (:mod:`kf_train.sim.rail`):
+  it stands at a station, accelerates on an S-curve to the line speed, cruises
+  (coasting now and then), may pass a slow zone, brakes to a stop at the next
+  station, dwells, and goes again, for as long as the node runs. ``rail_family``
+  (metro, regional) draws the run's values from ``seed``; ``rail_accel_mps2``,
+  ``rail_brake_mps2``, ``rail_jerk_mps3``, ``rail_line_speed_mps``,
+  ``rail_station_spacing_m`` and ``rail_dwell_s`` replace them (0 or []: drawn). A
+  seed gives exactly the run of ``kf_train.sim.rail_scenario(seed, family)`` and
+  ``kf-train simulate --scenario rail``. Also publishes ``ground_truth_accel``
+  (geometry_msgs/AccelStamped, the true acceleration in ``accel.linear.x`` [m/s²],
+  frame ``child_frame_id``: the body's x axis is along the track), stamped as the
+  ground truth. ``true_velocity`` is not used (the run starts standing).
 * ``noise_std``, ``initial_position`` and ``true_velocity`` default to the scenario's
-  values (train: 1 m, 0 m, 10 m/s; car: 1 m, 0.2 m, 0 m/s; robot: 0.03 m, 0 m).
+  values (train: 1 m, 0 m, 10 m/s; car: 1 m, 0.2 m, 0 m/s; robot: 0.03 m, 0 m;
+  rail: 1 m, 0 m).
+
+``real_time_factor`` (default 1) runs the simulation faster (or slower) than the
+wall clock: samples go out every 1/(rate_hz·real_time_factor) s while their stamps
+stay 1/rate_hz apart. Above 1 the stamps run ahead of the wall clock; subscribers
+that compare stamps with their clock (the estimator's future-stamp check) then need
+``use_sim_time`` and this node's ``publish_clock``.
 
 Controls: sample k's control is the input applied over (t_{k-1}, t_k], the interval
 that ends at it (SEEDS.md); it is stamped t_k, in the body frame ``child_frame_id``,
@@ -46,14 +65,14 @@ sample's stamp on ``/clock`` (rosgraph_msgs/Clock), so that nodes with
 
 import heapq
 
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
 from kf_train.filters import NS_PER_S
 from kf_train.ros import messages
 from kf_train.ros.param_spec import ParameterError
 from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.runner import run, StartupError
 from kf_train.ros.simulator_params import changed_config, PARAMETERS, simulator_config
-from kf_train.sim import CONTROL_NAMES, FaultInjector, make_stream
+from kf_train.sim import ACCELERATION_SCENARIOS, CONTROL_NAMES, FaultInjector, make_stream
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
@@ -87,6 +106,10 @@ class SimulatorNode(Node):
         self.measurement_pub = self.create_publisher(
             PoseWithCovarianceStamped, 'measurement', QOS_DEPTH)
         self.truth_pub = self.create_publisher(Odometry, 'ground_truth', QOS_DEPTH)
+        self.truth_accel_pub = None
+        if self.scenario in ACCELERATION_SCENARIOS:
+            self.truth_accel_pub = self.create_publisher(AccelStamped, 'ground_truth_accel',
+                                                         QOS_DEPTH)
         self.control_name = CONTROL_NAMES[self.scenario]
         self.control_pub = None
         if self.control_name is not None:
@@ -104,7 +127,8 @@ class SimulatorNode(Node):
         self._scheduled_due_ns = None
         self._delivery_timer = self.create_timer(1.0, self._on_delivery_timer,
                                                  clock=self._steady, autostart=False)
-        self._timer = self.create_timer(1.0 / self.rate_hz, self._on_timer)
+        self._timer = self.create_timer(
+            1.0 / (self.rate_hz * config.values['real_time_factor']), self._on_timer)
 
     @property
     def options(self):
@@ -160,6 +184,9 @@ class SimulatorNode(Node):
         self.truth_pub.publish(messages.to_odometry_msg(
             truth_stamp_ns, options.frame_id, options.child_frame_id, sample.true_position_m,
             sample.true_velocity_mps, 0.0, 0.0))
+        if self.truth_accel_pub is not None:
+            self.truth_accel_pub.publish(messages.to_accel_msg(
+                truth_stamp_ns, options.child_frame_id, sample.true_acceleration_mps2))
         self._finish_if_done()
 
     def _send(self, msg: PoseWithCovarianceStamped) -> None:
@@ -206,6 +233,8 @@ class SimulatorNode(Node):
         flush_timeout = Duration(nanoseconds=int(FLUSH_TIMEOUT_S * NS_PER_S))
         self.measurement_pub.wait_for_all_acked(timeout=flush_timeout)
         self.truth_pub.wait_for_all_acked(timeout=flush_timeout)
+        if self.truth_accel_pub is not None:
+            self.truth_accel_pub.wait_for_all_acked(timeout=flush_timeout)
         if self.control_pub is not None:
             self.control_pub.wait_for_all_acked(timeout=flush_timeout)
         self.get_logger().info(f'published {self.published} samples; done')

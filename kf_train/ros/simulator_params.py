@@ -11,7 +11,7 @@ from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
 from kf_train.sim import (
     CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, FaultSettings,
-    ROBOT_SPEED_STD_MPS, SCENARIOS)
+    RAIL_FAMILIES, rail_parameters, ROBOT_SPEED_STD_MPS, SCENARIOS)
 
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 FAULT_PARAMETERS = {
@@ -34,11 +34,28 @@ _FRAME = 'a non-empty frame name'
 _G_FIXED = 'fixed at start-up (restart to change)'
 _G_LIVE = 'changeable at runtime'
 _G_FAULTS = 'fault injection: all off by default, applied from the next sample'
+_G_RAIL = 'scenario rail: fixed at start-up (restart to change)'
+_DRAWN = " 0 (default): drawn from rail_family's range by seed."
+_DRAWN_PAIR = " Max 0 (default): rail_family's range."
+RAIL_PARAMETERS = {
+    'rail_accel_mps2': 'accel_mps2', 'rail_brake_mps2': 'brake_mps2',
+    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps'}
+"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0: drawn)."""
+RAIL_RANGE_PARAMETERS = {
+    'station_spacing_m': ('rail_station_spacing_min_m', 'rail_station_spacing_max_m'),
+    'dwell_s': ('rail_dwell_min_s', 'rail_dwell_max_s')}
+"""Keyword of kf_train.sim.rail_parameters -> its (min, max) parameters (max 0: drawn)."""
 
 
 def _double(name, default, description, range_, unit='', **more) -> ParamSpec:
     """Return the spec of a double parameter."""
     return ParamSpec(name, 'double', default, description, range=range_, unit=unit, **more)
+
+
+def _rail(name, default, description, range_, unit) -> ParamSpec:
+    """Return the spec of a rail run parameter (a double, fixed at start-up)."""
+    return ParamSpec(name, 'double', default, 'rail: ' + description + ' ' + _FIXED,
+                     range=range_, unit=unit, live=False, group=_G_RAIL)
 
 
 def _fault(name, default, description, range_, unit='') -> ParamSpec:
@@ -50,8 +67,16 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
     ParamSpec('scenario', 'string', 'train',
               'What is simulated: train (seed 000), car / car-exact (seed 001, publishes '
               'control as AccelStamped), robot / robot-exact (seed 002, publishes control as '
-              'TwistStamped). ' + _FIXED, choices=SCENARIOS, live=False, group=_G_FIXED),
+              'TwistStamped), rail (a jerk-limited run through stations, the rail_* '
+              'parameters; publishes the true acceleration on ground_truth_accel). '
+              + _FIXED, choices=SCENARIOS, live=False, group=_G_FIXED),
     _double('rate_hz', 10.0, 'Sample rate [Hz]. ' + _FIXED, (0.01, 10000.0), 'Hz',
+            live=False, group=_G_FIXED),
+    _double('real_time_factor', 1.0,
+            'Simulated seconds per wall-clock second: samples go out every '
+            '1/(rate_hz·real_time_factor) s, stamped 1/rate_hz apart, so above 1 the stamps '
+            'run ahead of the wall clock (give the subscribers use_sim_time and this node '
+            'publish_clock). Live node only. ' + _FIXED, (0.01, 1000.0), '',
             live=False, group=_G_FIXED),
     _double('true_velocity', None,
             "True velocity [m/s]: the train's constant one, the car's initial one (robot: "
@@ -67,6 +92,28 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
     ParamSpec('seed', 'integer', 0,
               'Seed of the measurement noise and of the faults; -1 draws fresh entropy. '
               + _FIXED, range=(-1, 2 ** 31 - 1), live=False, group=_G_FIXED),
+    ParamSpec('rail_family', 'string', 'metro',
+              'rail: the kind of line whose ranges the run is drawn from by seed: metro '
+              '(accel 0.8-1.3 m/s², brake 0.8-1.3 m/s², jerk 0.5-1 m/s³, line speed 15-25 m/s, '
+              'stations 600-1500 m apart, dwell 15-40 s) or regional (0.4-0.9, 0.5-1.1, '
+              '0.3-0.7, 30-45 m/s, 2500-8000 m, 30-90 s). ' + _FIXED, choices=RAIL_FAMILIES,
+              live=False, group=_G_RAIL),
+    _rail('rail_accel_mps2', 0.0, 'acceleration held on leaving a station [m/s²] '
+          '(0.05-1.3).' + _DRAWN, (0.0, 1.3), 'm/s²'),
+    _rail('rail_brake_mps2', 0.0, 'service braking [m/s²] (0.05-1.5).' + _DRAWN,
+          (0.0, 1.5), 'm/s²'),
+    _rail('rail_jerk_mps3', 0.0, 'jerk limit of every speed change [m/s³] (0.3-1).' + _DRAWN,
+          (0.0, 1.0), 'm/s³'),
+    _rail('rail_line_speed_mps', 0.0, 'cruising speed between stations [m/s] (10-45).'
+          + _DRAWN, (0.0, 45.0), 'm/s'),
+    _rail('rail_station_spacing_min_m', 0.0, 'shortest station-to-station distance [m] '
+          '(>= 100; with rail_station_spacing_max_m).', (0.0, 1e6), 'm'),
+    _rail('rail_station_spacing_max_m', 0.0, 'longest station-to-station distance [m] (>= '
+          'rail_station_spacing_min_m).' + _DRAWN_PAIR, (0.0, 1e6), 'm'),
+    _rail('rail_dwell_min_s', 0.0, 'shortest dwell at a station [s] (with rail_dwell_max_s).',
+          (0.0, 3600.0), 's'),
+    _rail('rail_dwell_max_s', 0.0, 'longest dwell at a station [s] (>= rail_dwell_min_s).'
+          + _DRAWN_PAIR, (0.0, 3600.0), 's'),
     _double('noise_std', None,
             'Standard deviation of the position measurement noise [m]; its square is '
             'published as the measurement variance. ' + _SCENARIOS, (0.0, 1000.0), 'm',
@@ -154,9 +201,32 @@ def simulator_config(values: Mapping[str, Any]) -> SimulatorConfig:
               'velocity_mps': values['true_velocity'],
               'acceleration_mps2': values['acceleration_mps2'],
               'speed_noise_std_mps': values['speed_noise_std']}
+    if values['scenario'] == 'rail':
+        stream['rail'] = rail_options(values)
     options = SimulatorOptions(**{name: values[name] for name in SimulatorOptions._fields})
     return SimulatorConfig(values['scenario'], values['rate_hz'], values['seed'], stream,
                            faults, options, values)
+
+
+def rail_options(values: Mapping[str, Any]) -> Dict[str, Any]:
+    """Return make_stream's ``rail`` options from the rail_* values; ParameterError if bad."""
+    options = {'family': values['rail_family']}
+    names = dict(RAIL_PARAMETERS)
+    for name, keyword in RAIL_PARAMETERS.items():
+        if values[name]:  # 0: the family draws it
+            options[keyword] = values[name]
+    for keyword, (low, high) in RAIL_RANGE_PARAMETERS.items():
+        names[f'{low}/{high}'] = keyword
+        if values[high]:  # max 0: the family's range
+            options[keyword] = (values[low], values[high])
+        elif values[low]:
+            raise ParameterError(f"{low} needs {high} too ({high} 0: the family's range)")
+    try:  # the ranges of one run (e.g. min <= max, jerk >= 0.3), checked at once
+        rail_parameters(seed=0, **options)
+    except ValueError as error:
+        name = next((n for n, k in names.items() if k in str(error)), 'rail')
+        raise ParameterError(f'{name}: {error}') from None
+    return options
 
 
 def changed_config(config: SimulatorConfig, changes: Mapping[str, Any]) -> SimulatorConfig:

@@ -22,9 +22,14 @@ the control of the interval (t_{k-1}, t_k] that ends at it (SEEDS.md), or None.
   ``robot-exact``'s is the reading of that interval itself, taken at t_k. Streamed
   noise is drawn sample by sample (speed, then range), so it is not the series
   ``scenarios.robot_scenario`` draws all at once.
+* ``rail`` (issue 11): :class:`kf_train.sim.rail_stream.RailStream`, a jerk-limited
+  run through stations (accelerate, cruise, slow zones, brake, dwell), starting at a
+  station; its values drawn by ``rail_family`` from the seed unless given (``rail``:
+  the keyword arguments of :func:`kf_train.sim.rail_stream.rail_parameters`). Its
+  samples carry the true acceleration.
 """
 
-from typing import NamedTuple, Optional
+from typing import Mapping, NamedTuple, Optional
 
 from kf_train.filters import as_finite_array
 from kf_train.presets import load_preset
@@ -32,17 +37,20 @@ from kf_train.sim.scenarios import robot_position_m
 from kf_train.sim.simulation import TrainSimulation
 import numpy as np
 
-SCENARIOS = ('train', 'car', 'car-exact', 'robot', 'robot-exact')
+SCENARIOS = ('train', 'car', 'car-exact', 'robot', 'robot-exact', 'rail')
 """The scenarios a stream (and the simulator node) can run."""
 CONTROL_NAMES = {'train': None, 'car': 'acceleration', 'car-exact': 'acceleration',
-                 'robot': 'velocity', 'robot-exact': 'velocity'}
+                 'robot': 'velocity', 'robot-exact': 'velocity', 'rail': None}
 """Each scenario's control: acceleration [m/s²], velocity [m/s], or None."""
+ACCELERATION_SCENARIOS = ('rail',)
+"""The scenarios whose samples carry the true acceleration."""
 DEFAULT_NOISE_STD_M = {'train': 1.0, 'car': 1.0, 'car-exact': 1.0, 'robot': 0.03,
-                       'robot-exact': 0.03}
+                       'robot-exact': 0.03, 'rail': 1.0}
 """Each scenario's measurement noise σ [m] (the seeds': R = 1, robot R = 0.03²)."""
 DEFAULT_INITIAL_STATE = {'train': (0.0, 10.0), 'car': (0.2, 0.0), 'car-exact': (0.2, 0.0),
-                         'robot': (0.0, 0.0), 'robot-exact': (0.0, 0.0)}
-"""Each scenario's (initial position m, velocity m/s); the robot's velocity follows x(t)."""
+                         'robot': (0.0, 0.0), 'robot-exact': (0.0, 0.0), 'rail': (0.0, 0.0)}
+"""Each scenario's (initial position m, velocity m/s); the robot's velocity follows x(t),
+the rail run starts standing."""
 CAR_ACCELERATION_MPS2 = 1.0
 """Seed 001's commanded acceleration."""
 ROBOT_SPEED_STD_MPS = 0.2
@@ -59,6 +67,8 @@ class ScenarioSample(NamedTuple):
     measured_position_m: float
     control: Optional[float]
     """The control of the interval that ends at t_s, or None without control input."""
+    true_acceleration_mps2: Optional[float] = None
+    """The true acceleration at t_s (ACCELERATION_SCENARIOS), else None."""
 
 
 def _scalar(name: str, value) -> float:
@@ -187,17 +197,25 @@ class TrainStream:
                               s.measured_position_m, None)
 
 
+def _rail_seed(seed: Optional[int]) -> int:
+    """Return the seed of a rail run: the given one, or one drawn from fresh entropy."""
+    return int(np.random.SeedSequence().entropy % 2 ** 63) if seed is None else int(seed)
+
+
 def make_stream(scenario: str, rate_hz: float, seed: Optional[int], *,
                 noise_std_m: Optional[float] = None,
                 initial_position_m: Optional[float] = None,
                 velocity_mps: Optional[float] = None,
                 acceleration_mps2: float = CAR_ACCELERATION_MPS2,
-                speed_noise_std_mps: float = ROBOT_SPEED_STD_MPS):
+                speed_noise_std_mps: float = ROBOT_SPEED_STD_MPS,
+                rail: Optional[Mapping] = None):
     """
     Return the stream of a scenario; None arguments take the scenario's defaults.
 
     ``velocity_mps`` is the train's constant velocity or the car's initial one (the
-    robot's follows its trajectory). ``seed`` None draws fresh entropy.
+    robot's follows its trajectory, the rail run's its plan). ``seed`` None draws fresh
+    entropy. ``rail``: ``family`` and the keyword arguments of
+    :func:`kf_train.sim.rail_stream.rail_parameters` (rail only).
     """
     if scenario not in SCENARIOS:
         raise ValueError(f"scenario must be one of {', '.join(SCENARIOS)}, got {scenario!r}")
@@ -207,6 +225,14 @@ def make_stream(scenario: str, rate_hz: float, seed: Optional[int], *,
     position, velocity = DEFAULT_INITIAL_STATE[scenario]
     position = position if initial_position_m is None else initial_position_m
     velocity = velocity if velocity_mps is None else velocity_mps
+    if scenario == 'rail':
+        # (rail_stream builds on this module's ScenarioSample: imported here.)
+        from kf_train.sim.rail_stream import rail_parameters, RailStream
+        rail = dict(rail or {})
+        family = rail.pop('family', 'metro')
+        seed = _rail_seed(seed)
+        return RailStream(rate_hz, seed, noise, position,
+                          rail_parameters(family, seed, **rail))
     if scenario == 'train':
         return TrainStream(TrainSimulation(position, velocity, noise, rate_hz, seed))
     if scenario in ('car', 'car-exact'):

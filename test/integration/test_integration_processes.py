@@ -273,17 +273,28 @@ def test_demo_end_to_end(spawn, tmp_path):
     output_dir = tmp_path / 'demo'
     demo = spawn([os.path.join(VENV_BIN, 'kf-train'), 'demo', '--output-dir',
                   str(output_dir)], 'demo')
-    assert demo.wait(timeout_s=90.0) == 0, demo.stderr()
-    report = demo.stdout()
+    assert demo.wait(timeout_s=180.0) == 0, demo.stderr()
+    stdout = demo.stdout()
+    rail_at = stdout.index('kf-train demo: a rail run over DDS')  # after seed 000's report
+    report, rail_report = stdout[:rail_at], stdout[rail_at:]
     for key in ('final position [m] (t = 10.0 s)', 'final velocity [m/s] (t = 10.0 s)',
                 'position at t = 12.0 s [m]: Kalman', 'running average (5 samples) baseline',
                 'raw difference baseline', 'DDS vs offline core'):
         assert key in report, key
     assert float(re.search(r'core .*max \|difference\| = (\S+)', report)[1]) <= 1e-9
     assert float(re.search(r'simulation: max \|difference\| = (\S+)', report)[1]) == 0.0
-    assert (output_dir / 'report.txt').read_text() == report
+    assert (output_dir / 'report.txt').read_text() + '\n' == report
     assert 'Traceback' not in demo.stderr()
     assert 'figures: ' in demo.stderr()  # drawn, or 'not available' without kf_train.cli.plotting
+    # The rail run: the defaults against tuned KFs, DDS equal to the offline core.
+    for key in ('a rail run over DDS', 'estimator defaults, over DDS', 'constant-velocity KF',
+                'constant-acceleration KF', 'best tuned KF', 'figure: '):
+        assert key in rail_report, key
+    assert float(re.search(r'core .*max \|difference\| = (\S+)', rail_report)[1]) <= 1e-9
+    assert float(re.search(r'simulation: max \|difference\| = (\S+)', report)[1]) == 0.0
+    assert float(re.search(r'offline run: max \|difference\| = (\S+)', rail_report)[1]) == 0.0
+    assert (output_dir / 'rail' / 'report.txt').read_text() == rail_report
+    assert (output_dir / 'rail' / 'rail.png').is_file()
     with open(output_dir / 'series.csv') as stream:
         rows = list(csv.DictReader(stream))
     assert len(rows) == 100

@@ -836,7 +836,7 @@ def test_preset_and_scenario_parameters(ros_context):
     with pytest.raises(StartupError, match='scenario must be one of'):
         SimulatorNode(context=ros_context, parameter_overrides=[
             Parameter('scenario', value='plane')])
-    assert set(SCENARIOS) == {'train', 'car', 'car-exact', 'robot', 'robot-exact'}
+    assert set(SCENARIOS) == {'train', 'car', 'car-exact', 'robot', 'robot-exact', 'rail'}
 
 
 @pytest.mark.parametrize('module, assignment, words', [

@@ -113,7 +113,7 @@ def test_seed_000_from_a_bag_is_exact(tmp_path, storage):
 
 
 def test_mcap_output_holds_the_node_topics(tmp_path):
-    """--output X.mcap: estimate, prediction, innovation and /diagnostics, standard types."""
+    """--output X.mcap: estimate, prediction, innovation, /diagnostics, regimes (rail)."""
     bag, _ = seed_000_bag(tmp_path / 'seed')
     out = tmp_path / 'out.mcap'
     assert replay(bag, '--output', out, '-p', 'diagnostics_period_s:=1.0') == 0
@@ -125,11 +125,12 @@ def test_mcap_output_holds_the_node_topics(tmp_path):
     assert kinds == {'/estimate': 'nav_msgs/msg/Odometry',
                      '/prediction': 'nav_msgs/msg/Odometry',
                      '/innovation': 'geometry_msgs/msg/Vector3Stamped',
-                     '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray'}
+                     '/diagnostics': 'diagnostic_msgs/msg/DiagnosticArray',
+                     '/regime_probabilities': 'std_msgs/msg/Float64MultiArray'}
     # Default initialization (first measurement): 100 estimates, 99 innovations; record
     # times span 9.9 s, so /diagnostics at 1, 2, ..., 9 s after the first message.
     assert counts == {'/estimate': 100, '/prediction': 100, '/innovation': 99,
-                      '/diagnostics': 9}
+                      '/diagnostics': 9, '/regime_probabilities': 100}
     assert estimates[-1].header.stamp.sec == 10 and estimates[-1].header.stamp.nanosec == 0
 
 

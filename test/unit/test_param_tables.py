@@ -59,7 +59,9 @@ def test_the_simulator_table_is_the_stream_the_faults_and_the_options():
         field.name for field in dataclasses.fields(FaultSettings)}
     assert set(simulator_params.PARAMETERS.names) == (
         {'scenario', 'rate_hz', 'seed', 'noise_std', 'initial_position', 'true_velocity',
-         'acceleration_mps2', 'speed_noise_std'} | faults | set(SimulatorOptions._fields))
+         'acceleration_mps2', 'speed_noise_std', 'real_time_factor', 'rail_family'}
+        | set(simulator_params.RAIL_PARAMETERS) | faults | set(SimulatorOptions._fields)
+        | {name for pair in simulator_params.RAIL_RANGE_PARAMETERS.values() for name in pair})
     assert config.faults == FaultSettings()
     assert config.stream == {'noise_std_m': 1.0, 'initial_position_m': 0.0,
                              'velocity_mps': 10.0, 'acceleration_mps2': 1.0,
@@ -322,11 +324,34 @@ def test_the_simulators_configuration_offline():
             ('rate_hz:=10', 'invalid parameter rate_hz:=10: must be of type DOUBLE, not '
                             'INTEGER (write 10.0)'),
             ('scenario:=plane', 'invalid parameter: scenario must be one of train, car, '
-                                "car-exact, robot, robot-exact, got 'plane'"),
-            ("child_frame_id:=''", 'invalid parameter: child_frame_id must not be empty')]:
+                                "car-exact, robot, robot-exact, rail, got 'plane'"),
+            ("child_frame_id:=''", 'invalid parameter: child_frame_id must not be empty'),
+            ('rail_jerk_mps3:=0.1', 'invalid parameter: rail_jerk_mps3: jerk_mps3 must be in '
+                                    '[0.3, 1], got 0.1'),
+            ('rail_dwell_min_s:=30.0', 'invalid parameter: rail_dwell_min_s needs '
+                                       'rail_dwell_max_s too (rail_dwell_max_s 0: the '
+                                       "family's range)"),
+            ('rail_station_spacing_max_m:=900.0',
+             'invalid parameter: rail_station_spacing_min_m/rail_station_spacing_max_m: '
+             'station_spacing_m[0] must be in [100, 1e+06], got 0.0')]:
         with pytest.raises(ParameterError) as raised:
-            load_simulator_config(overrides=[assignment])
+            load_simulator_config(overrides=['scenario:=rail', assignment])
         assert str(raised.value) == line
+
+
+def test_the_rail_scenario_takes_its_values_or_draws_them():
+    """0 and [] leave a value to the family's draw; the others reach the stream."""
+    drawn = load_simulator_config(overrides=['scenario:=rail'])
+    assert drawn.stream['rail'] == {'family': 'metro'}
+    assert drawn.stream['noise_std_m'] == 1.0 and drawn.stream['initial_position_m'] == 0.0
+    given = load_simulator_config(overrides=[
+        'scenario:=rail', 'rail_family:=regional', 'rail_accel_mps2:=0.5',
+        'rail_line_speed_mps:=30.0', 'rail_station_spacing_min_m:=2000.0',
+        'rail_station_spacing_max_m:=3000.0'])
+    assert given.stream['rail'] == {'family': 'regional', 'accel_mps2': 0.5,
+                                    'line_speed_mps': 30.0,
+                                    'station_spacing_m': (2000.0, 3000.0)}
+    assert 'rail' not in load_simulator_config().stream
 
 
 def test_tables_diagnostics_and_docs_import_no_ros():
