@@ -395,11 +395,14 @@ def test_launch_params_reset_service_and_ctrl_c_to_launch(ros2):
         done = ros2.run('param', 'set', '/estimator', name, value)
         assert 'Setting parameter failed' in done.stderr and reason in done.stderr, done
         assert ros2.check('param', 'get', '/estimator', name) == old
+    # The default preset (rail) has no white-noise q of its own to add to: refused too.
+    done = ros2.run('param', 'set', '/estimator', 'process_noise_density', '0.5')
+    assert 'Setting parameter failed' in done.stderr and 'rail' in done.stderr, done
     # The CLI can set what is valid: the refusals above are the node's.
     assert 'Set parameter successful' in ros2.check(
-        'param', 'set', '/estimator', 'process_noise_density', '0.5')
-    assert ros2.check('param', 'get', '/estimator', 'process_noise_density').split() == [
-        'Double', 'value', 'is:', '0.5']
+        'param', 'set', '/estimator', 'gate_probability', '0.999')
+    assert ros2.check('param', 'get', '/estimator', 'gate_probability').split() == [
+        'Double', 'value', 'is:', '0.999']
 
     text = ros2.check('service', 'call', '/estimator/reset', 'std_srvs/srv/Trigger')
     assert re.search(r'Trigger_Response\(success=True, message=.filter reset', text), text
