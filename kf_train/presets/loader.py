@@ -357,17 +357,21 @@ def load_preset(name: str) -> Preset:
     return load_preset_file(preset_path(name))
 
 
-def load_preset_file(path: str) -> Preset:
-    """Return the preset in a YAML file; every error names the file and the key."""
+def read_yaml_file(path: str):
+    """Return a YAML file's content; one-line ValueError naming the file if unreadable."""
     import yaml
     try:
         with open(path, encoding='utf-8') as stream:
-            data = yaml.safe_load(stream)
+            return yaml.safe_load(stream)
     except OSError as error:
         raise ValueError(f'{path}: cannot read: {error.strerror}') from None
     except yaml.YAMLError as error:
         raise ValueError(f'{path}: not valid YAML: {" ".join(str(error).split())}') from None
-    return preset_from_mapping(data, source=path)
+
+
+def load_preset_file(path: str) -> Preset:
+    """Return the preset in a YAML file; every error names the file and the key."""
+    return preset_from_mapping(read_yaml_file(path), source=path)
 
 
 def preset_from_mapping(data: Mapping[str, Any], source: str = '<mapping>') -> Preset:

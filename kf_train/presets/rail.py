@@ -21,7 +21,7 @@ import os
 from typing import Any, Mapping, NamedTuple, Optional, Tuple
 
 from kf_train.filters import MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES
-from kf_train.presets.loader import PRESET_DIR
+from kf_train.presets.loader import PRESET_DIR, read_yaml_file
 import numpy as np
 
 RAIL_PRESET_NAME = 'rail'
@@ -151,14 +151,7 @@ class MovingDynamics(NamedTuple):
 
 def load_rail_preset(path: str = RAIL_PRESET_PATH) -> RailPreset:
     """Return the rail preset in a YAML file; errors name the file and the key."""
-    import yaml
-    try:
-        with open(path, encoding='utf-8') as stream:
-            data = yaml.safe_load(stream)
-    except OSError as error:
-        raise ValueError(f'{path}: cannot read: {error.strerror}') from None
-    except yaml.YAMLError as error:
-        raise ValueError(f'{path}: not valid YAML: {" ".join(str(error).split())}') from None
+    data = read_yaml_file(path)
     try:
         return rail_preset_from_mapping(data, path)
     except ValueError as error:
