@@ -83,8 +83,13 @@ class Probe(Node):
         return {topic: len(msgs) for topic, msgs in self.received.items()}
 
     def sees_nodes(self) -> bool:
-        """Return whether the graph shows both nodes' publishers and the estimator's input."""
+        """Return whether both nodes' publishers are matched and the estimator listens."""
+        # The graph (count_publishers) learns of an endpoint before DDS matches it; a
+        # message sent in between is lost (and the estimator publishes only to matched
+        # subscribers), so the probe's own subscriptions must report a matched publisher.
         return (all(self.count_publishers(topic) >= 1 for topic in self.topics)
+                and all(subscription.get_publisher_count() >= 1
+                        for subscription in self._topic_subscriptions.values())
                 and self.count_subscribers('measurement') >= 1)
 
 
