@@ -35,13 +35,12 @@ A bad bag, parameter or output path: a one-line error, exit 1, no output at all.
 
 import itertools
 import math
-import os
 import sys
 import time
 from typing import Callable, Iterator, List, NamedTuple, Optional
 
 from kf_train.cli.progress import counted
-from kf_train.cli.replay import write_atomic
+from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.estimator import StreamEstimator
 from kf_train.io import bagio, bagio_output, csvio
 from kf_train.ros import diagnostics as ros_diagnostics
@@ -183,7 +182,7 @@ def _csv_chunks(run: BagRun, counts: dict) -> Iterator:
 
 def write_csv(run: BagRun, path: str, counts: dict) -> None:
     """Replay into a CSV at ``path`` (atomically)."""
-    _check_directory(path)
+    check_file_target(path)
     try:
         write_atomic(path, _csv_chunks(run, counts))
     except OSError as error:
@@ -216,17 +215,6 @@ def write_bag(run: BagRun, path: str, counts: dict) -> None:
                 out.write_innovation(record_ns, outputs.innovation_stamp_ns,
                                      update.innovation[0], update.innovation_covariance[0, 0],
                                      update.nis)
-
-
-def _check_directory(path: str) -> None:
-    """Raise a one-line ValueError if ``path``'s directory is missing or not writable."""
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ValueError(f'cannot write {path}: directory {directory} does not exist')
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise ValueError(f'cannot write {path}: directory {directory} is not writable')
-    if os.path.isdir(path):
-        raise ValueError(f'cannot write {path}: it is a directory')
 
 
 def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = None,

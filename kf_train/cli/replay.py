@@ -444,6 +444,17 @@ def format_csv(header: Sequence[str], columns: Sequence[np.ndarray],
         yield csvio.format_rows(columns, start, min(start + rows_per_chunk, N), prefix)
 
 
+def check_file_target(path: str) -> None:
+    """Raise a one-line ValueError unless a file can be written at ``path`` (write_atomic)."""
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise ValueError(f'cannot write {path}: directory {directory} does not exist')
+    if not os.access(directory, os.W_OK | os.X_OK):
+        raise ValueError(f'cannot write {path}: directory {directory} is not writable')
+    if os.path.isdir(path):
+        raise ValueError(f'cannot write {path}: it is a directory')
+
+
 def write_atomic(path: str, chunks: Iterable) -> None:
     """Write text chunks (bytes or str) to ``path`` via a temporary file; no partial file."""
     if path == '-':

@@ -47,12 +47,11 @@ no output is left behind.
 import argparse
 import collections
 import math
-import os
 import sys
 import time
 from typing import Iterator, List, NamedTuple, Optional
 
-from kf_train.cli.replay import write_atomic
+from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.filters import NS_PER_S
 from kf_train.ros import param_spec, simulator_params
 from kf_train.sim import ACCELERATION_SCENARIOS, CONTROL_NAMES, FaultInjector, make_stream
@@ -169,24 +168,13 @@ def _csv_line(row: list, position_m: Optional[float]) -> str:
 
 def write_csv(config, samples: int, path: str, start_ns: int) -> dict:
     """Write the run as a CSV at ``path`` (atomically); return the message counts."""
-    _check_directory(path)
+    check_file_target(path)
     counts = {'measurement': 0, 'ground_truth': 0, 'control': 0, 'ground_truth_accel': 0}
     try:
         write_atomic(path, _csv_chunks(config, samples, start_ns, counts))
     except OSError as error:
         raise ValueError(f'cannot write {path}: {error.strerror or error}') from None
     return counts
-
-
-def _check_directory(path: str) -> None:
-    """Raise a one-line ValueError if ``path``'s directory is missing or not writable."""
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ValueError(f'cannot write {path}: directory {directory} does not exist')
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise ValueError(f'cannot write {path}: directory {directory} is not writable')
-    if os.path.isdir(path):
-        raise ValueError(f'cannot write {path}: it is a directory')
 
 
 def _parser() -> argparse.ArgumentParser:
