@@ -35,7 +35,7 @@ import time
 from typing import Callable, Dict, List, NamedTuple, Optional, Sequence
 
 from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
-from kf_train.ros import demo_nodes, messages
+from kf_train.ros import demo_nodes, diagnostics, messages
 from kf_train.sim import extrapolate, raw_difference_velocity, running_average, TrainSimulation
 import numpy as np
 
@@ -187,7 +187,7 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
         # symmetric): its answer to a service call does, and then it also knows the
         # probe's older estimate and prediction subscriptions.
         settings = _estimator_settings(executor, probe)
-        _check_children(children)
+        wait_connected(executor, probe, children)
         # Everything else is subscribed. The simulator waits for every measurement
         # subscriber the probe knows of (the estimator, the probe, anyone else's in a
         # user-chosen domain), so no sample goes out before the probe listens.
@@ -221,6 +221,21 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
     (output_dir / 'report.txt').write_text(report + '\n')
     _progress(f'wrote report.txt and series.csv to {output_dir}')
     return report
+
+
+def wait_connected(executor, probe: demo_nodes.Probe, children: Dict[str, '_Child'],
+                   prefix: str = '') -> None:
+    """Spin until the estimator reports its input and outputs matched (or raise DemoError)."""
+    # The probe's own view cannot show it: DDS matches each end of a topic separately,
+    # and the estimator's best-effort reader drops samples from a writer it has not
+    # matched yet. Its /diagnostics (every diagnostics_period_s) counts its own ends.
+    if not _spin_until(executor, probe.estimator_connected, DISCOVERY_TIMEOUT_S, children):
+        status = probe.estimator_status()
+        seen = ('no /diagnostics from it' if status is None else ', '.join(
+            f'{key} {status.get(key, "?")}' for key in diagnostics.MATCHED_KEYS))
+        raise DemoError(f'{prefix}the estimator has not matched its topics after '
+                        f'{DISCOVERY_TIMEOUT_S:g} s: {seen}')
+    _check_children(children)
 
 
 def _start_nodes(children: Dict[str, _Child], seed: int, env: Dict[str, str],

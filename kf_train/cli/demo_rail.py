@@ -44,7 +44,6 @@ QUEUE_DEPTH = 1000
 AFTER_ARRIVAL_S = 20.0
 """How long the run goes on after the train stops at the next station [s]."""
 MAX_DURATION_S = 240.0
-STATUS_NAME = 'estimator: filter'
 
 
 class RailPlan(NamedTuple):
@@ -144,6 +143,7 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
                 f'(see the logs in {output_dir})')
         settings = seed_demo._estimator_settings(executor, probe)
         has_regimes = bool(diagnostics.regime_names(StreamEstimator(settings)))
+        seed_demo.wait_connected(executor, probe, children, 'rail: ')
         probe.subscribe_measurement()
         problem = demo_nodes.set_parameter(
             executor, probe, 'simulator', 'min_subscribers',
@@ -155,7 +155,7 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
         if not seed_demo._spin_until(executor, lambda: _complete(probe, rail.samples, has_regimes),
                                      timeout_s, children, simulator_may_finish=True):
             counts = ', '.join(f'{topic} {n}' for topic, n in probe.counts().items())
-            status = latest_status(probe) or {}
+            status = probe.estimator_status() or {}
             raise seed_demo.DemoError(
                 f'rail: samples missing after {timeout_s:g} s: received {counts} of '
                 f'{rail.samples} samples; the estimator took in {status.get("received", "?")} '
@@ -174,15 +174,6 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
     return series, settings
 
 
-def latest_status(probe: demo_nodes.Probe) -> Optional[Dict[str, str]]:
-    """Return the values of the estimator's newest /diagnostics status, or None."""
-    for array in reversed(probe.received['/diagnostics']):
-        for status in array.status:
-            if status.name == STATUS_NAME:
-                return {value.key: value.value for value in status.values}
-    return None
-
-
 def _sees_nodes(probe: demo_nodes.Probe) -> bool:
     """Return whether both nodes' publishers and the estimator's input are in the graph."""
     return (all(probe.count_publishers(topic) >= 1 for topic in (
@@ -196,7 +187,7 @@ def _complete(probe: demo_nodes.Probe, samples: int, has_regimes: bool) -> bool:
     if min(counts['measurement'], counts['ground_truth'], counts['ground_truth_accel']) \
             < samples:
         return False
-    status = latest_status(probe)
+    status = probe.estimator_status()
     # The status counts what the estimator took in; it goes out after the outputs.
     if status is None or int(status.get('received', 0)) < samples:
         return False

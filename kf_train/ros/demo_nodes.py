@@ -12,6 +12,7 @@ from typing import Dict, List, Mapping, Optional, Sequence, Tuple
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
+from kf_train.ros.diagnostics import MATCHED_KEYS, STATUS_SUFFIX
 from nav_msgs.msg import Odometry
 import rclpy
 from rclpy.context import Context
@@ -49,7 +50,7 @@ class Probe(Node):
     def __init__(self, *, context: Optional[Context] = None,
                  node_name: str = 'kf_train_probe', namespace: str = '',
                  depth: int = PROBE_DEPTH, subscribe_measurement: bool = True,
-                 topics: Mapping[str, type] = TOPICS):
+                 topics: Mapping[str, type] = TOPICS, estimator_name: str = 'estimator'):
         """
         Subscribe to ``topics`` (TOPICS: ground_truth, estimate, prediction), measurement last.
 
@@ -61,17 +62,51 @@ class Probe(Node):
         self.qos = QoSProfile(depth=depth)
         self.topics = dict(topics)
         self.received: Dict[str, List] = {topic: [] for topic in self.topics}
+        self._estimator_status: Optional[Dict[str, str]] = None
+        self._status_name = f'{estimator_name}: {STATUS_SUFFIX}'
         self._topic_subscriptions = {}
         for topic in self.topics:
             if topic != 'measurement':
                 self._subscribe(topic)
+        if '/diagnostics' not in self.topics:
+            # Not recorded, only read: the estimator's status tells what it has matched.
+            self._status_subscription = self.create_subscription(
+                DiagnosticArray, '/diagnostics', self._on_diagnostics, self.qos)
         if subscribe_measurement:
             self.subscribe_measurement()
 
     def _subscribe(self, topic: str) -> None:
         """Record ``topic`` into ``self.received[topic]``."""
+        record = self.received[topic].append
+        if topic == '/diagnostics':
+            def record(msg, append=record):
+                append(msg)
+                self._on_diagnostics(msg)
         self._topic_subscriptions[topic] = self.create_subscription(
-            self.topics[topic], topic, self.received[topic].append, self.qos)
+            self.topics[topic], topic, record, self.qos)
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """Keep the values of the estimator's newest status."""
+        for status in msg.status:
+            if status.name == self._status_name:
+                self._estimator_status = {value.key: value.value for value in status.values}
+
+    def estimator_status(self) -> Optional[Dict[str, str]]:
+        """Return the values of the estimator's newest /diagnostics status, or None."""
+        return self._estimator_status
+
+    def estimator_connected(self) -> bool:
+        """
+        Return whether the estimator's newest status shows its input and outputs matched.
+
+        DDS matches each end of a topic on its own: the simulator (``min_subscribers``)
+        and the probe see only their own ends. A best-effort reader drops what arrives
+        from a writer it has not matched yet, so before the first sample goes out the
+        estimator must report a matched measurement publisher, and estimate and
+        prediction subscribers.
+        """
+        status = self._estimator_status or {}
+        return all(int(status.get(key, '0')) >= 1 for key in MATCHED_KEYS)
 
     def subscribe_measurement(self) -> None:
         """Start recording ``measurement`` (idempotent)."""

@@ -19,6 +19,11 @@ CONSISTENCY_CONFIDENCE = 0.99
 MAX_CONDITION = 1e12
 """Condition number of P above which the status warns: beyond ~1e12 a double keeps only a
 few significant digits of the smaller eigen-direction."""
+STATUS_SUFFIX = 'filter'
+"""The estimator's status is named '<node name>: filter'."""
+MATCHED_KEYS = ('measurement_publishers', 'estimate_subscribers', 'prediction_subscribers')
+"""Keys counting the DDS endpoints matched on the node's side of measurement, estimate and
+prediction (the node adds them: only it can count them)."""
 
 
 class NodeCounts(NamedTuple):

@@ -125,7 +125,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.estimator import NS_PER_S
 from kf_train.ros import messages
-from kf_train.ros.diagnostics import regime_names
+from kf_train.ros.diagnostics import MATCHED_KEYS, regime_names, STATUS_SUFFIX
 from kf_train.ros.estimator_params import (
     changed_config, DEFAULTS, estimator_config, FRAME_PARAMETERS, PARAMETERS)
 from kf_train.ros.param_spec import ParameterError
@@ -320,10 +320,20 @@ class EstimatorNode(Node):
         """Publish /diagnostics and say once when measurements stop."""
         status = self.session.diagnostics(self.get_clock().now().nanoseconds)
         msg = messages.to_diagnostics_msg(
-            self.get_clock().now().nanoseconds, f'{self.get_name()}: filter', 'kf_train',
-            status.level, status.message, status.values)
+            self.get_clock().now().nanoseconds, f'{self.get_name()}: {STATUS_SUFFIX}',
+            'kf_train', status.level, status.message,
+            list(status.values) + self._matched_values())
         self._last_diagnostics = msg
         self.diagnostics_pub.publish(msg)
+
+    def _matched_values(self):
+        """Return the DDS endpoints matched on this node's side (MATCHED_KEYS)."""
+        # The graph (ros2 topic info) lists an endpoint before DDS matches it and also
+        # one whose QoS is incompatible: only these counts say what really connects.
+        counts = (self.subscription.get_publisher_count(),
+                  self.estimate_pub.get_subscription_count(),
+                  self.prediction_pub.get_subscription_count())
+        return [(key, str(count)) for key, count in zip(MATCHED_KEYS, counts)]
 
 
 def main(args=None) -> int:

@@ -127,10 +127,11 @@ def node(bin_dir, name, *parameters, extra=()):
 
 def discover(executor, probe, children):
     """
-    Spin until the probe sees both nodes and the estimator sees the probe.
+    Spin until the probe sees both nodes and the estimator has matched its topics.
 
-    The estimator answering a service call shows it has discovered the probe, and with
-    it the probe's older subscriptions (estimate, prediction). Fails early if a child dies.
+    The estimator answering a service call shows it has discovered the probe; its
+    /diagnostics then show its measurement input and its outputs matched on its side
+    (Probe.estimator_connected). Fails early if a child dies.
     """
     def ready():
         for child in children:
@@ -140,6 +141,10 @@ def discover(executor, probe, children):
     assert spin_until(executor, ready, DISCOVERY_TIMEOUT_S), 'discovery timed out'
     assert fetch_parameters(executor, probe, 'estimator', ['horizon_s'],
                             DISCOVERY_TIMEOUT_S) is not None, 'the estimator does not answer'
+    # Each end of a topic is matched on its own; the estimator's status counts its ends.
+    assert spin_until(executor, lambda: ready() and probe.estimator_connected(),
+                      DISCOVERY_TIMEOUT_S), \
+        f'the estimator has not matched its topics: {probe.estimator_status()}'
 
 
 def missing(probe):

@@ -15,6 +15,7 @@ from kf_train.estimator import (
     DEFAULT_GATE_PROBABILITY, EstimateStep, EstimatorSettings, NS_PER_S, Rejected,
     REJECTION_REASONS, RESET_REASONS, StreamEstimator)
 from kf_train.ros import messages
+from kf_train.ros.diagnostics import MATCHED_KEYS
 from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
@@ -271,6 +272,21 @@ def test_diagnostics_report_rates_and_warn_once_on_timeout(ros_context, executor
     expected_keys |= {f'rejected.{r}' for r in REJECTION_REASONS}
     expected_keys |= {f'resets.{r}' for r in RESET_REASONS}
     assert expected_keys <= set(values)
+    # The harness's probe is the one publisher of measurement and the one subscriber of
+    # estimate and prediction; a second subscriber is counted once DDS has matched it.
+    assert [values[key] for key in MATCHED_KEYS] == ['1', '1', '1']
+    late = h.probe.create_subscription(Odometry, 'prediction', lambda msg: None, 10)
+    assert spin_until(executor, lambda: h.node.prediction_pub.get_subscription_count() == 2,
+                      5.0)
+    status, values = h.diagnostics(newer_than=time.time())
+    assert [values[key] for key in MATCHED_KEYS] == ['1', '1', '2']
+    h.probe.destroy_subscription(late)
+    h.probe.destroy_publisher(h.measurement_pub)
+    assert spin_until(executor, lambda: h.node.subscription.get_publisher_count() == 0, 5.0)
+    status, values = h.diagnostics(newer_than=time.time())
+    assert values['measurement_publishers'] == '0'
+    h.measurement_pub = h.probe.create_publisher(PoseWithCovarianceStamped, 'measurement', 10)
+    assert spin_until(executor, lambda: h.measurement_pub.get_subscription_count() == 1, 5.0)
     assert spin_until(executor, lambda: h.node._timed_out, 5.0)
     status, values = h.diagnostics(newer_than=time.time())
     assert status.level == messages.DIAGNOSTIC_LEVELS['WARN']
