@@ -3,6 +3,9 @@
 
     kf-train tune [--preset P | --config FILE] INPUT --output PARAMS.yaml
 
+The default preset is the estimator node's, ``rail`` (its IMM's noises are tuned by
+:mod:`kf_train.cli.tune_rail`); for the linear presets (``--preset train`` ...):
+
 It finds the white-noise acceleration density q (``process_noise_density``) and the
 measurement variance R (``measurement_variance``; ``measurement_velocity_variance``
 too for cv-position-velocity) that make the data most likely under the estimator
@@ -50,6 +53,7 @@ from kf_train.batch import (
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
 from kf_train.cli.replay import write_atomic
 from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
+from kf_train.cli.tune_rail import check_rail_args, rail_preset_of, run_rail
 from kf_train.presets import (
     available_presets, load_preset, load_preset_file, Preset, preset_from_mapping)
 import numpy as np
@@ -226,8 +230,9 @@ def _parser() -> argparse.ArgumentParser:
                         help="the measurements: CSV ('-': stdin), a .parquet file or a "
                              'directory of them, or a rosbag2 bag (a directory, .mcap or .db3)')
     source = parser.add_mutually_exclusive_group()
-    source.add_argument('--preset', metavar='NAME', choices=available_presets(),
-                        default=None, help='a shipped preset (default train): %(choices)s')
+    source.add_argument('--preset', metavar='NAME', choices=['rail'] + available_presets(),
+                        default=None, help="a shipped preset (default rail, the node's): "
+                                           '%(choices)s')
     source.add_argument('--config', metavar='FILE', help='a preset YAML file of your own')
     parser.add_argument('--output', '-o', metavar='PARAMS.yaml', required=True,
                         help='where to write the estimator params file')
@@ -254,6 +259,10 @@ def _parser() -> argparse.ArgumentParser:
                              'else 2)')
     parser.add_argument('--confidence', metavar='P', type=float, default=0.95,
                         help='confidence of the intervals (0.95)')
+    parser.add_argument('--rail-noises', metavar='NAMES',
+                        help='rail preset: the noises to estimate, comma-separated '
+                             '(default acceleration_noise,command_noise; also '
+                             'capability_noise); R too unless the data carry it')
     bag = parser.add_argument_group('bag input (a rosbag2 directory, .mcap or .db3)')
     bag.add_argument('--topic', metavar='NAME', default=None,
                      help="the measurement topic (default: 'measurement' resolved in the "
@@ -349,6 +358,17 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser = _parser()
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     _check_args(parser, args)
+    try:
+        rail = rail_preset_of(args)
+    except ValueError as error:
+        print(f'kf-train tune: error: {" ".join(str(error).split())}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    if rail is not None:
+        noises = check_rail_args(parser, args)
+        return run_rail(args, rail, noises, os.path.abspath(args.config) if args.config
+                        else 'rail')
+    if args.rail_noises is not None:
+        parser.error('--rail-noises applies to the rail preset only')
     try:
         spec, preset, problem, parameterisation, before, notes = _setup(args)
         horizon_s = args.horizon or preset.horizon_s or DEFAULT_HORIZON_S

@@ -1,0 +1,315 @@
+"""
+The rail IMM's log-likelihood of a measurement sequence, for many noise settings at once.
+
+The rail preset (:class:`~kf_train.filters.RailModel`, docs/rail.md) is an IMM of four
+regimes. Its prediction of the next measurement is a Gaussian mixture: after the
+mixing and the mode-matched predictions, regime j predicts z_k ~ N(ẑ_j, s_j) with
+probability c̄_j. The likelihood of the data given the model's noise θ is therefore
+
+    ℓ(θ) = Σ_k log Σ_j c̄_kj N(y_kj; 0, s_kj),    y_kj = z_k − ẑ_kj,
+
+summed over every measurement after the first (which initialises the filter, as the
+node's ``first_measurement`` does). This is the standard IMM likelihood (Bar-Shalom,
+Li & Kirubarajan 2001, §11.6.6): exact for the IMM's recursion, which itself
+approximates the true 4ᵏ-component mixture by one Gaussian per regime after each
+mixing; it is the likelihood of the filter the node runs, not of an exact switching
+model.
+
+Evaluating it once per setting with the node's own classes costs one IMM run
+(~130 µs per measurement on the test machine, ~0.8 s for 6000 fixes); an optimiser
+with numerical gradients and a curvature needs dozens of them. :func:`rail_log_likelihoods`
+runs K settings at once instead: the same equations as
+:class:`~kf_train.filters.RailModel` and :mod:`kf_train.filters.imm_stack` (mixing with
+the regimes' entry transformation, the state-dependent brake → stand rate, x⁻ = F x,
+P⁻ = F P Fᵀ + Q, the Joseph-form scalar update, the posterior in the log domain),
+with one more leading axis for the settings, so one pass costs little more than one
+run. The tests hold it to the node's classes (RailModel.predict/update, and the
+StreamEstimator) to 1e-9 relative on simulated runs.
+
+Only noises that do not change the motion's transition F are varied here: the
+acceleration noise q_a, the command noise q_ℓ, the capability noise and the
+measurement variance R (:class:`RailNoise`); everything else is the preset's.
+"""
+
+import math
+from typing import NamedTuple, Optional, Sequence
+
+from kf_train.batch.noise_likelihood import Segment
+from kf_train.filters import RailModelParameters
+from kf_train.filters.imm import RateTransition
+from kf_train.filters.rail_model import relaxation_noise, relaxation_transition
+import numpy as np
+
+LOG_2PI = math.log(2.0 * math.pi)
+STAND, ACCELERATE, CRUISE, BRAKE = range(4)
+RAIL_NOISE_FIELDS = ('acceleration_noise', 'command_noise', 'capability_noise')
+"""The RailModelParameters a :class:`RailNoise` varies (they only change Q)."""
+
+
+class RailNoise(NamedTuple):
+    """One noise setting of the rail model (None: the preset's value)."""
+
+    acceleration_noise: Optional[float] = None
+    """q_a [m²/s⁵]."""
+    command_noise: Optional[float] = None
+    """q_ℓ [m²/s⁵]."""
+    capability_noise: Optional[float] = None
+    """Random walk of A and B [m²/s⁵]."""
+    measurement_variance: Optional[float] = None
+    """R [m²]; None: the preset's (its ``R``)."""
+
+    def parameters(self, base: RailModelParameters) -> RailModelParameters:
+        """Return ``base`` with this setting's noises (R as noise_std_m)."""
+        import dataclasses
+        fields = {name: getattr(self, name) for name in RAIL_NOISE_FIELDS
+                  if getattr(self, name) is not None}
+        if self.measurement_variance is not None:
+            fields['noise_std_m'] = math.sqrt(self.measurement_variance)
+        return dataclasses.replace(base, **fields)
+
+
+class RailLikelihoods(NamedTuple):
+    """What one pass over the data gives for K settings."""
+
+    log_likelihood: np.ndarray
+    """ℓ of each setting (K,)."""
+    nis: np.ndarray
+    """(K, rows): the mixture innovation's NIS y²/S at every measurement after the first."""
+    innovation: np.ndarray
+    """(K, rows): the mixture innovation y = z − Σ c̄_j ẑ_j."""
+    variance: np.ndarray
+    """(K, rows): its variance S = Σ c̄_j (s_j + (ẑ_j − ẑ)²)."""
+
+
+class _Unit(NamedTuple):
+    """Per dt: F (4, 6, 6), Fᵀ, and Q per unit of each noise (4, 6, 6)."""
+
+    F: np.ndarray
+    F_transposed: np.ndarray
+    acceleration: np.ndarray
+    command: np.ndarray
+    capability: np.ndarray
+    stand: np.ndarray
+
+
+def _unit_matrices(dt_s: float, params: RailModelParameters) -> _Unit:
+    """Return the regimes' F(dt) and their Q(dt) per unit of each noise (Q is linear in them)."""
+    tau = params.response_time_s
+    moving = np.eye(6)
+    moving[:4, :4] = relaxation_transition(dt_s, tau)[0]
+    F = np.array([np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0]), moving, moving, moving])
+    acceleration = np.zeros((4, 6, 6))
+    command = np.zeros((4, 6, 6))
+    # Q_moving = relaxation_noise(dt, τ, q_a, q_ℓ) = q_a·Q(1, 0) + q_ℓ·Q(0, 1) (linear)
+    acceleration[1:, :4, :4] = relaxation_noise(dt_s, tau, 1.0, 0.0)
+    command[1:, :4, :4] = relaxation_noise(dt_s, tau, 0.0, 1.0)
+    capability = np.zeros((4, 6, 6))
+    capability[:, 4, 4] = capability[:, 5, 5] = dt_s     # A, B: random walk, every regime
+    stand = np.zeros((4, 6, 6))
+    stand[STAND, 0, 0] = dt_s                             # stand_noise · dt on p
+    return _Unit(F, F.swapaxes(1, 2).copy(), acceleration, command, capability, stand)
+
+
+def _entry(params: RailModelParameters):
+    """
+    Return (rows (4, 6), rows², W (4,)) of RailModel.entry for the four regimes.
+
+    Entering regime j is x' = T_j x + w: T_j is the identity with ℓ's row replaced by
+    ``rows[j]`` (A's for accelerate, −B's for brake, zeros otherwise) and w ~ N(0, W_j).
+    """
+    rows = np.zeros((4, 6))
+    rows[ACCELERATE, 4] = 1.0                                 # ℓ = A + w
+    rows[BRAKE, 5] = -1.0                                     # ℓ = −B + w
+    plateau, cruise = params.plateau_std_mps2 ** 2, params.cruise_std_mps2 ** 2
+    return rows, rows * rows, np.array([0.0, plateau, cruise, plateau])
+
+
+def _normal_cdf(x: np.ndarray) -> np.ndarray:
+    """Return Φ(x) elementwise (math.erfc; numpy has none)."""
+    return np.array([0.5 * math.erfc(-v / math.sqrt(2.0)) for v in x.tolist()])
+
+
+def _transition(base: np.ndarray, params: RailModelParameters, brake_rates: np.ndarray,
+                dt_s: float, means: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """
+    Return Π(dt) per setting (K, 4, 4): the fixed rates, brake → stand scaled by P(slow).
+
+    As RailModel._transition_matrix: the brake row's stand rate is stop_rate ·
+    P(v <= stop_speed) under the brake regime's estimate; Π_ii = e^(−r_i dt),
+    Π_ij = (1 − e^(−r_i dt)) r_ij / r_i.
+    """
+    count = means.shape[0]
+    v = means[:, BRAKE, 1]
+    std = np.sqrt(np.maximum(covs[:, BRAKE, 1, 1], 0.0))
+    slow = np.where(v <= params.stop_speed_mps, 1.0, 0.0)
+    spread = std > 0.0
+    if np.any(spread):
+        slow[spread] = _normal_cdf((params.stop_speed_mps - v[spread]) / std[spread])
+    rates = np.repeat(brake_rates[None], count, axis=0)       # (K, 4), brake's own 0
+    rates[:, STAND] = params.stop_rate_hz * slow
+    leave = rates.sum(axis=1)                                 # r_i
+    stay = np.exp(-leave * dt_s)                              # Π_ii = e^(−r_i dt)
+    share = rates / np.where(leave > 0.0, leave, 1.0)[:, None]  # r_ij / r_i (0 if r_i = 0)
+    row = (1.0 - stay)[:, None] * share                       # Π_ij = (1 − e^(−r_i dt)) r_ij / r_i
+    row[:, BRAKE] = stay
+    matrix = np.repeat(base[None], count, axis=0)
+    matrix[:, BRAKE] = row
+    return matrix
+
+
+def _mix(matrix: np.ndarray, probabilities: np.ndarray, means: np.ndarray, covs: np.ndarray,
+         entry):
+    """
+    Return (c̄ (K, 4), x0 (K, 4, 6), P0 (K, 4, 6, 6)): the IMM's mixing with the entry hook.
+
+    c̄_j = Σ_i Π_ij μ_i, ω_ij = Π_ij μ_i / c̄_j (an unreachable regime, c̄_j = 0, keeps
+    its own estimate); component i enters regime j as x' = T_j x + w (ℓ's entry, row and
+    column change); x0_j = Σ_i ω_ij x_ji, P0_j = Σ_i ω_ij (P_ji + d dᵀ), d = x_ji − x0_j.
+    """
+    count, modes, n = means.shape
+    rows, squares, noise = entry
+    cbar = np.einsum('ki,kij->kj', probabilities, matrix)           # c̄_j = Σ_i Π_ij μ_i
+    unreachable = cbar == 0.0
+    blocked = unreachable.any()
+    weights = matrix * probabilities[:, :, None] / (
+        np.where(unreachable, 1.0, cbar) if blocked else cbar)[:, None]  # ω_ij = Π_ij μ_i / c̄_j
+    if blocked:
+        for k, j in zip(*np.nonzero(unreachable)):
+            weights[k, :, j] = 0.0
+            weights[k, j, j] = 1.0
+    columns = weights.swapaxes(1, 2)                                 # [k, j, i] = ω_ij
+    eye = np.arange(modes)
+    xs = np.repeat(means[:, None], modes, axis=1)                    # [k, j, i] = x_i
+    xs[:, :, :, 3] = np.einsum('jn,kin->kji', rows, means)          # ℓ_ji = T_j's row · x_i
+    xs[:, eye, eye, 3] = means[:, :, 3]                              # staying: itself
+    x0 = np.matmul(columns[:, :, None, :], xs)[:, :, 0, :]           # Σ_i ω_ij x_ji
+    ell = np.einsum('jn,kinm->kjim', rows, covs)                     # row ℓ of T_j P_i
+    diagonal = covs[:, :, np.arange(n), np.arange(n)]                # (K, i, n)
+    ell[:, :, :, 3] = np.einsum('jn,kin->kji', squares, diagonal) + noise[None, :, None]
+    ell[:, eye, eye, :] = covs[:, :, 3, :]
+    spread = np.matmul(columns, covs.reshape(count, modes, n * n)).reshape(count, modes, n, n)
+    row = np.matmul(columns[:, :, None, :], ell)[:, :, 0, :]         # Σ_i ω_ij (row ℓ)
+    spread[:, :, 3, :] = row
+    spread[:, :, :, 3] = row
+    d = xs - x0[:, :, None, :]                                       # d_ji = x_ji − x0_j
+    P0 = spread + np.matmul((columns[..., None] * d).swapaxes(2, 3), d)
+    return cbar, x0, (P0 + P0.swapaxes(-1, -2)) * 0.5
+
+
+def _update(means: np.ndarray, covs: np.ndarray, z: float, R: np.ndarray,
+            identity: np.ndarray):
+    """
+    Return (x, P, y (K, 4), s (K, 4)): every regime corrected by the scalar position z.
+
+    H = e₀: y = z − x₀, s = P₀₀ + R, K = P[:, 0] / s, x = x + K y and the Joseph form
+    P = (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised, as imm_stack.update does.
+    """
+    y = z - means[:, :, 0]                                           # y = z − H x⁻
+    s = covs[:, :, 0, 0] + R[:, None]                                # s = H P⁻ Hᵀ + R
+    gain = covs[:, :, :, 0] / s[:, :, None]                          # K = P⁻ Hᵀ / s
+    x = means + gain * y[:, :, None]                                 # x = x⁻ + K y
+    I_KH = identity.copy()
+    I_KH[:, :, :, 0] -= gain                                         # I − K H
+    P = np.matmul(np.matmul(I_KH, covs), I_KH.swapaxes(-1, -2)) + \
+        (gain * R[:, None, None])[..., None] * gain[:, :, None, :]   # + K R Kᵀ
+    return x, (P + P.swapaxes(-1, -2)) * 0.5, y, s
+
+
+def _noise_of(settings: Sequence[RailNoise], base: RailModelParameters, preset_variance: float):
+    """Return (q_a, q_ℓ, q_c, R) per setting, each (K,)."""
+    def column(name, default):
+        return np.array([default if getattr(s, name) is None else float(getattr(s, name))
+                         for s in settings])
+    return (column('acceleration_noise', base.acceleration_noise),
+            column('command_noise', base.command_noise),
+            column('capability_noise', base.capability_noise),
+            column('measurement_variance', preset_variance))
+
+
+def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innovations: bool):
+    """Return (ℓ (K,), y (K, rows), S (K, rows)) of one segment (see rail_log_likelihoods)."""
+    q_a, q_l, q_c, R = noise
+    count = R.shape[0]
+    t, z = segment.t_s, segment.z[:, 0]
+    rows = max(t.shape[0] - 1, 0)
+    total = np.zeros(count)
+    ys, Ss = np.zeros((count, rows)), np.zeros((count, rows))
+    if rows == 0:
+        return total, ys, Ss
+    # first_measurement: position z₀ with variance R, the other states at their priors.
+    x0 = np.array([z[0], 0.0, 0.0, 0.0, base.accelerate_mps2, base.brake_mps2])
+    means = np.tile(x0, (count, 4, 1))
+    covs = np.tile(base.initial_covariance(1.0), (count, 4, 1, 1))
+    covs[:, :, 0, 0] = R[:, None]
+    probabilities = np.full((count, 4), 0.25)
+    entry, rates = _entry(base), RateTransition(base.rates())
+    brake_rates = base.rates()[BRAKE]
+    identity = np.tile(np.eye(6), (count, 4, 1, 1))
+    units, bases = {}, {}
+    weights = (q_a[:, None, None, None], q_l[:, None, None, None], q_c[:, None, None, None])
+    dts = np.diff(t)
+    for k in range(rows):
+        dt = float(dts[k])
+        unit = units.get(dt)
+        if unit is None:
+            unit = units[dt] = _unit_matrices(dt, base)
+            matrix = rates.matrix(dt)
+            bases[dt] = matrix
+        matrix = _transition(bases[dt], base, brake_rates, dt, means, covs)
+        cbar, mixed_x, mixed_P = _mix(matrix, probabilities, means, covs, entry)
+        cbar = cbar / cbar.sum(axis=1, keepdims=True)                # as IMM.predict
+        Q = weights[0] * unit.acceleration + weights[1] * unit.command + \
+            weights[2] * unit.capability + base.stand_noise * unit.stand
+        means = np.matmul(unit.F, mixed_x[..., None])[..., 0]        # x⁻ = F x
+        covs = np.matmul(np.matmul(unit.F, mixed_P), unit.F_transposed) + Q  # F P Fᵀ + Q
+        covs = (covs + covs.swapaxes(-1, -2)) * 0.5
+        means, covs, y, s = _update(means, covs, float(z[k + 1]), R, identity)
+        logs = np.log(cbar) - 0.5 * (y * y / s + np.log(s) + LOG_2PI)  # log c̄_j N(y_j; s_j)
+        top = logs.max(axis=1, keepdims=True)
+        w = np.exp(logs - top)
+        mass = w.sum(axis=1)
+        total += top[:, 0] + np.log(mass)                            # log Σ_j c̄_j N(y_j; s_j)
+        probabilities = w / mass[:, None]                            # μ_j ∝ c̄_j Λ_j
+        if keep_innovations:
+            ybar = np.einsum('kj,kj->k', cbar, y)                    # y = z − Σ c̄_j ẑ_j
+            d = y - ybar[:, None]
+            ys[:, k] = ybar
+            Ss[:, k] = np.einsum('kj,kj->k', cbar, s + d * d)        # Σ c̄_j (s_j + d_j²)
+    if not (np.all(np.isfinite(means)) and np.all(np.isfinite(covs))):
+        raise ValueError('the rail filter produced a non-finite state; a noise is too large')
+    return total, ys, Ss
+
+
+def rail_log_likelihoods(base: RailModelParameters, segments: Sequence[Segment],
+                         settings: Sequence[RailNoise], preset_variance: float = None,
+                         innovations: bool = False) -> RailLikelihoods:
+    """
+    Return ℓ (and optionally the mixture innovations) of each setting, in one pass.
+
+    ``base``: the preset's RailModelParameters; ``segments``: one per object (each
+    started by its first measurement, as the node's first_measurement); ``settings``:
+    K :class:`RailNoise` (a None field keeps ``base``'s value, R ``preset_variance``,
+    default base.noise_std_m²). Raises ValueError for a negative noise or R <= 0.
+    """
+    if not settings:
+        raise ValueError('settings must hold at least one RailNoise')
+    variance = base.noise_std_m ** 2 if preset_variance is None else float(preset_variance)
+    noise = _noise_of(settings, base, variance)
+    for name, values in zip(RAIL_NOISE_FIELDS + ('measurement_variance',), noise):
+        if not np.all(np.isfinite(values)) or np.any(values < 0.0):
+            raise ValueError(f'{name} must be finite numbers >= 0, got {values.tolist()}')
+    if np.any(noise[3] <= 0.0):
+        raise ValueError(f'measurement_variance must be > 0, got {noise[3].tolist()}')
+    totals, ys, Ss = np.zeros(len(settings)), [], []
+    for segment in segments:
+        if segment.z.ndim != 2 or segment.z.shape[1] != 1:
+            raise ValueError(f'rail segments measure the position alone: z must be (N, 1), '
+                             f'got {segment.z.shape}')
+        with np.errstate(divide='ignore'):     # log c̄_j = −inf for an unreachable regime
+            total, y, S = _segment_pass(segment, base, noise, innovations)
+        totals += total
+        ys.append(y)
+        Ss.append(S)
+    y, S = np.concatenate(ys, axis=1), np.concatenate(Ss, axis=1)
+    nis = np.divide(y * y, S, out=np.zeros_like(y), where=S > 0.0)
+    return RailLikelihoods(totals, nis, y, S)

@@ -1,0 +1,242 @@
+"""
+``kf-train tune --preset rail``: the rail IMM's noises, estimated from logged measurements.
+
+The rail preset (docs/rail.md) has no white-noise acceleration density q: each moving
+regime has an acceleration noise q_a and a command noise q_ℓ (``acceleration_noise``,
+``command_noise``), and the measurement variance R. This module estimates those the
+data can identify by maximum likelihood of the IMM's innovations
+(:mod:`kf_train.batch.rail_likelihood`, maximised by :mod:`kf_train.cli.rail_fit`),
+checks the node's own filter before and after (:func:`kf_train.batch.rail_checks.rail_check`:
+NIS, whiteness, and with truth the 2-s prediction RMSE and 2σ coverage), and writes
+
+* a tuned rail preset file (``--preset-output``, by default next to PARAMS.yaml as
+  ``<name>-rail.yaml``): the preset with the tuned noises, which the node reads through
+  its ``preset`` parameter (a YAML path with ``model: rail_regimes``), and
+  ``kf-train replay TABLE --config`` too;
+* PARAMS.yaml, ``estimator: ros__parameters:`` with ``preset`` the absolute path of that
+  file and ``measurement_variance`` where R was estimated or given.
+
+The inputs and their options are ``kf-train tune``'s (:mod:`kf_train.cli.tune`).
+"""
+
+import datetime
+import math
+import os
+import sys
+from typing import List, Optional
+
+from kf_train.batch import nis_consistency
+from kf_train.batch.rail_checks import rail_check
+from kf_train.batch.rail_likelihood import rail_log_likelihoods, RailNoise
+from kf_train.cli.rail_fit import fit_rail_noise, RailFit
+from kf_train.cli.replay import write_atomic
+from kf_train.cli.tune_inputs import reader_for, TopicOptions
+from kf_train.presets import rail_preset_from_mapping, RailPreset
+import numpy as np
+
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1
+CHECK_CONFIDENCE = 0.99
+DEFAULT_NOISES = ('acceleration_noise', 'command_noise')
+TUNABLE_NOISES = ('acceleration_noise', 'command_noise', 'capability_noise')
+_REFUSED = (('fix_q', '--fix-q'), ('initial_state', '--initial-state'), ('t0', '--t0'))
+
+
+def check_rail_args(parser, args) -> List[str]:
+    """Refuse the options that have no meaning for the rail preset (exit 2); return the noises."""
+    for attribute, option in _REFUSED:
+        if getattr(args, attribute, None) not in (None, False):
+            parser.error(f'{option} does not apply to the rail preset (it has no q; '
+                         'its noises are acceleration_noise and command_noise)')
+    if args.initialization == 'prior':
+        parser.error('--initialization prior does not apply to the rail preset (the node '
+                     'starts it from the first measurement)')
+    noises = [n.strip() for n in (args.rail_noises or ','.join(DEFAULT_NOISES)).split(',')]
+    for name in noises:
+        if name not in TUNABLE_NOISES:
+            parser.error(f"--rail-noises: {name!r} is not one of {', '.join(TUNABLE_NOISES)}")
+    if len(set(noises)) != len(noises):
+        parser.error('--rail-noises: a noise is named twice')
+    if args.fix_r is not None and len(args.fix_r) != 1:
+        parser.error('--fix-r takes one variance for the rail preset (it measures the position)')
+    return noises
+
+
+def _moment_variance(segments) -> float:
+    """
+    Return R from the second differences of the measurements (a start, not an estimate).
+
+    d_k = z_{k+1} − 2 z_k + z_{k−1} is 4R + 2R = 6R in variance with lag-1 covariance
+    −4R when the motion's own second difference (a·dt², ~0.01 m at 10 Hz) is
+    negligible: R = (γ₀ − 4γ₁)/22 as for the linear presets.
+    """
+    g0 = g1 = 0.0
+    count = 0
+    for s in segments:
+        if s.z.shape[0] < 4:
+            continue
+        d = np.diff(s.z[:, 0], n=2)
+        g0 += float(np.sum(d * d))
+        g1 += float(np.sum(d[1:] * d[:-1]))
+        count += d.shape[0]
+    if count < 2 or g0 <= 0.0:
+        raise ValueError('the measurements do not vary (or there are fewer than 4 rows per '
+                         'object): nothing to estimate the noise from')
+    g0, g1 = g0 / count, g1 / (count - 1)
+    return max((g0 - 4.0 * g1) / 22.0, g0 / 600.0)
+
+
+def tuned_rail_yaml(preset: RailPreset, setting: RailNoise) -> str:
+    """Return the rail preset file with the tuned noises (checked to load back)."""
+    import yaml
+    with open(preset.source, encoding='utf-8') as stream:
+        data = yaml.safe_load(stream)
+    parameters = dict(data.get('parameters') or {})
+    for name in ('acceleration_noise', 'command_noise', 'capability_noise'):
+        value = getattr(setting, name)
+        if value is not None:
+            parameters[name] = float(value)
+    data['parameters'] = parameters
+    if setting.measurement_variance is not None:
+        data['R'] = [[float(setting.measurement_variance)]]
+    data['name'] = f"{data['name']}-tuned"
+    data['description'] = f"{data.get('description', '')} (noise tuned by kf-train tune)"
+    rail_preset_from_mapping(data, source='tuned preset')        # must load back
+    return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+
+
+def default_preset_output(output: str) -> str:
+    """Return where the tuned rail preset goes by default: PARAMS.yaml -> PARAMS-rail.yaml."""
+    root, ext = os.path.splitext(output)
+    return f'{root}-rail{ext or ".yaml"}'
+
+
+def _number(value: float) -> str:
+    """Return a number with 4 significant digits."""
+    return 'inf' if math.isinf(value) else ('-' if value != value else f'{value:.4g}')
+
+
+def _fit_lines(fit: RailFit, confidence: float) -> List[str]:
+    """Return the estimates' table."""
+    lines = [f'maximum likelihood of the IMM innovations: {fit.passes} passes over the data '
+             f'({fit.evaluations} settings), {fit.seconds:.1f} s'
+             + ('' if fit.converged else f' (optimiser: {fit.message})'),
+             f'  {"parameter":<40} {"estimate":>10}  {f"{confidence:.0%} interval":<24}'
+             f'{"std. error":>10}']
+    for e in fit.estimates:
+        label = f'{e.parameter.symbol:<5} {e.parameter.name} [{e.parameter.unit}]'
+        interval = (f'[{_number(e.low)}, {_number(e.high)}]' if e.identified
+                    else 'not identified')
+        note = '  (compatible with 0: bound)' if e.low == 0.0 else ''
+        lines.append(f'  {label:<40} {_number(e.value):>10}  {interval:<24}'
+                     f'{_number(e.std_error):>10}{note}')
+    return lines
+
+
+def _check_lines(before, after, ll_before: float, ll_after: float) -> List[str]:
+    """Return the NIS, whiteness and prediction lines."""
+    b = nis_consistency(before.innovations, CHECK_CONFIDENCE)
+    a = nis_consistency(after.innovations, CHECK_CONFIDENCE)
+    lines = [f'log-likelihood: before {ll_before:.2f}, after {ll_after:.2f}',
+             f'NIS, mean of {a.count} mixture innovations ({CHECK_CONFIDENCE:.0%} χ² bounds '
+             f'[{a.low:.4g}, {a.high:.4g}]): before {b.mean_nis:.4g} ({b.verdict}), after '
+             f'{a.mean_nis:.4g} ({a.verdict})',
+             f'lag-1 autocorrelation of the innovations ({CHECK_CONFIDENCE:.0%} bound '
+             f'±{a.lag1_bound:.3g}): before {b.lag1:.3g}, after {a.lag1:.3g}']
+    pb, pa = before.prediction, after.prediction
+    if pa is None:
+        lines.append('prediction RMSE: no truth in the input (true_position, true_velocity '
+                     'columns, or --truth-topic)')
+    else:
+        units = {'position': 'm', 'velocity': 'm/s'}
+        parts = [f'{n} before {_number(pb.rmse[n])} {units[n]}, after {_number(pa.rmse[n])} '
+                 f'{units[n]}' for n in pa.rmse]
+        lines.append(f'{pa.horizon_s:g}-s prediction RMSE ({pa.count} rows with truth): '
+                     + '; '.join(parts))
+        lines.append(f'{pa.horizon_s:g}-s prediction 2σ coverage of the position: before '
+                     f'{100 * pb.coverage:.1f} %, after {100 * pa.coverage:.1f} %')
+    return lines
+
+
+def _setup(args, preset: RailPreset, noises: List[str]):
+    """Return (data, notes, fixed setting, start setting, R written?)."""
+    from kf_train.cli.tune import carried_variances
+    data = reader_for(args.input)(args.input, preset,
+                                  TopicOptions(args.topic, args.control_topic, args.truth_topic))
+    carried, note = carried_variances(data, args.estimate_r)
+    notes = [line for line in (data.summary, note) if line]
+    fixed_r = args.fix_r[0] if args.fix_r is not None else (carried[0] if carried else None)
+    names = list(noises) + (['measurement_variance'] if fixed_r is None else [])
+    params = preset.parameters
+    fixed = RailNoise(params.acceleration_noise, params.command_noise, params.capability_noise,
+                      fixed_r if fixed_r is not None else _moment_variance(data.segments))
+    before_r = carried_variances(data, False)[0]
+    before = fixed._replace(measurement_variance=before_r[0] if before_r
+                            else params.noise_std_m ** 2)
+    return data, notes, fixed, names, before, args.fix_r is not None or fixed_r is None
+
+
+def run_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> int:
+    """Tune the rail preset ``preset`` on ``args.input``; print the report; return the exit code."""
+    try:
+        data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
+        segments = data.segments
+        rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
+        if rows < 2:
+            raise ValueError('no innovations to estimate from: the data need at least 3 rows')
+        base = preset.parameters
+
+        def likelihoods(settings):
+            return rail_log_likelihoods(base, segments, settings).log_likelihood
+        fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence)
+        horizon_s = args.horizon or preset.horizon_s or 2.0
+        lls = likelihoods([before, fit.setting])
+
+        def check(setting):
+            tuned = preset._replace(parameters=setting.parameters(base))
+            return rail_check(tuned, segments, setting.measurement_variance, horizon_s)
+        report_before, report_after = check(before), check(fit.setting)
+        preset_output = args.preset_output or default_preset_output(args.output)
+        if args.output == '-' and not args.preset_output:
+            raise ValueError('--preset-output is needed with --output - (the params file '
+                             'points at the tuned rail preset file)')
+        params = {'preset': os.path.abspath(preset_output)}
+        if r_written:
+            params['measurement_variance'] = float(fit.setting.measurement_variance)
+        comments = [f'Written by kf-train tune on {datetime.date.today().isoformat()} from '
+                    f'{args.input} ({rows} innovations), preset {spec_label}: the tuned rail '
+                    f'preset is {os.path.basename(preset_output)}.']
+        comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} interval '
+                     f'[{_number(e.low)}, {_number(e.high)}]' for e in fit.estimates]
+        comments += [f'input: {line}' for line in notes]
+        comments.append(f'Use: estimator --ros-args --params-file {os.path.basename(args.output)}'
+                        f' (or kf-train replay BAG --params-file {os.path.basename(args.output)})')
+        from kf_train.cli.tune import params_yaml
+        text = '\n'.join(
+            [f'kf-train tune: preset {spec_label} (rail IMM), {rows + len(segments)} rows '
+             f'({len(segments)} object{"s" * (len(segments) != 1)}), {rows} innovations, '
+             'initialization first_measurement']
+            + [f'input: {line}' for line in notes] + _fit_lines(fit, args.confidence)
+            + _check_lines(report_before, report_after, float(lls[0]), float(lls[1])))
+        write_atomic(preset_output, [tuned_rail_yaml(preset, fit.setting._replace(
+            measurement_variance=fit.setting.measurement_variance if r_written else None))])
+        write_atomic(args.output, [params_yaml(params, comments)])
+    except ImportError as error:
+        print(f'kf-train tune: error: needs scipy ({error}); install it with '
+              "'pip install scipy'", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ValueError as error:
+        print(f'kf-train tune: error: {" ".join(str(error).split())}', file=sys.stderr)
+        return EXIT_BAD_INPUT
+    stream = sys.stderr if args.output == '-' else sys.stdout
+    print(text, file=stream)
+    print(f'wrote {args.output} and {preset_output}', file=stream)
+    return EXIT_OK
+
+
+def rail_preset_of(args) -> Optional[RailPreset]:
+    """Return the rail preset ``args`` choose (--preset rail or a rail --config), else None."""
+    from kf_train.presets import is_rail_preset_file, load_rail_preset, RAIL_PRESET_NAME
+    if args.config:
+        return load_rail_preset(args.config) if is_rail_preset_file(args.config) else None
+    return load_rail_preset() if args.preset in (None, RAIL_PRESET_NAME) else None
