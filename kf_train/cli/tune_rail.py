@@ -209,7 +209,8 @@ def run_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> in
         comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} interval '
                      f'[{_number(e.low)}, {_number(e.high)}]' for e in fit.estimates]
         comments += [f'input: {line}' for line in notes]
-        comments.append(f'Use: estimator --ros-args --params-file {os.path.basename(args.output)}'
+        use = os.path.basename(args.output)
+        comments.append(f"Use: estimator --ros-args --params-file {use}"
                         f' (or kf-train replay BAG --params-file {os.path.basename(args.output)})')
         from kf_train.cli.tune import params_yaml
         text = '\n'.join(

@@ -33,7 +33,10 @@ def simulate(*args):
 
 def tune(capsys, *args):
     """Run ``kf-train tune ARGS``; return (exit code, stdout, stderr)."""
-    code = tune_main([str(a) for a in args])
+    argv = [str(a) for a in args]
+    if '--preset' not in argv and '--config' not in argv:
+        argv = ['--preset', 'train'] + argv        # the default is rail (test_tune_rail.py)
+    code = tune_main(argv)
     captured = capsys.readouterr()
     return code, captured.out, captured.err
 
@@ -254,7 +257,8 @@ def test_topic_options_apply_to_bags_only(tmp_path, capsys):
     """--topic with a CSV is a usage error (exit 2), as in kf-train replay."""
     _csv(tmp_path / 'in.csv', white_noise_acceleration_scenario(0.5, 1.0, 20, seed=1))
     with pytest.raises(SystemExit) as exit_info:
-        tune_main([str(tmp_path / 'in.csv'), '-o', str(tmp_path / 'p.yaml'), '--topic', 'x'])
+        tune_main(['--preset', 'train', str(tmp_path / 'in.csv'), '-o', str(tmp_path / 'p.yaml'),
+                   '--topic', 'x'])
     assert exit_info.value.code == 2
     assert '--topic applies to a bag input only' in capsys.readouterr().err
 

@@ -12,12 +12,20 @@ import sys
 from kf_train import cli
 from kf_train.batch import noisy_preset, run_linear_series
 from kf_train.cli.replay import main as replay_main
-from kf_train.cli.tune import main
+from kf_train.cli.tune import main as tune_main
 from kf_train.presets import load_preset, load_preset_file
 from kf_train.sim import white_noise_acceleration_scenario
 import numpy as np
 import pytest
 import yaml
+
+
+def main(argv):
+    """Run kf-train tune with the train preset unless one is given (the default is rail)."""
+    argv = [str(a) for a in argv]
+    if '--preset' not in argv and '--config' not in argv:
+        argv = ['--preset', 'train'] + argv
+    return tune_main(argv)
 
 
 def _write_csv(path, rows=400, q=0.5, noise_std_m=1.0, seed=11, truth=True, ids=None):

@@ -1,0 +1,253 @@
+"""``kf-train tune --preset rail`` (the default): the rail IMM's noises by maximum likelihood."""
+
+import csv
+import math
+
+from kf_train.batch.noise_likelihood import Segment
+from kf_train.batch.rail_checks import rail_check
+from kf_train.batch.rail_likelihood import rail_log_likelihoods, RailNoise
+from kf_train.batch.rail_series import RailSeriesFilter
+from kf_train.cli import main as kf_train_main
+from kf_train.cli.bag_replay import load_config
+from kf_train.cli.rail_fit import derivatives, stencil
+from kf_train.cli.tune import main as tune_main
+from kf_train.estimator import EstimatorSettings, StreamEstimator
+from kf_train.estimator.live_presets import resolve_preset
+from kf_train.filters import chi2_mean_bounds, RailModel, RailModelParameters
+from kf_train.presets import load_rail_preset, RailPreset
+from kf_train.sim.rail import rail_scenario
+import numpy as np
+import pytest
+import yaml
+
+DURATION_S = 240          # 2400 fixes: a few stations of a metro run, ~10 s to tune
+SEED, HELD_OUT_SEED = 5, 6
+
+
+def _tune(capsys, *args):
+    """Run ``kf-train tune ARGS``; return (exit code, stdout, stderr)."""
+    code = tune_main([str(a) for a in args])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _params(path):
+    """Return the estimator's ros__parameters of a params file."""
+    with open(path, encoding='utf-8') as stream:
+        return yaml.safe_load(stream)['estimator']['ros__parameters']
+
+
+def _segment(seed: int, rows: int = None) -> Segment:
+    """Return a metro run of ``seed`` (all of it, or its first rows) with its truth."""
+    scenario, _ = rail_scenario(seed=seed, family='metro')
+    rows = rows or scenario.t_s.shape[0]
+    return Segment(scenario.t_s[:rows], scenario.z[:rows], None, scenario.truth[:rows])
+
+
+@pytest.fixture(scope='module')
+def runs(tmp_path_factory):
+    """Simulate one rail run as a CSV and a bag (kf-train simulate); return the directory."""
+    directory = tmp_path_factory.mktemp('rail')
+    for output in ('run.csv', 'run.mcap'):
+        assert kf_train_main(['simulate', '--scenario', 'rail', '--duration', str(DURATION_S),
+                              '--seed', str(SEED), '--output',
+                              str(directory / output)]) == 0
+    return directory
+
+
+@pytest.fixture(scope='module')
+def tuned_csv(runs):
+    """Tune the default preset (rail) on the CSV; return (exit code, stdout, params path)."""
+    import io
+    import sys
+    out, stdout = io.StringIO(), sys.stdout
+    sys.stdout = out
+    try:
+        code = tune_main([str(runs / 'run.csv'), '-o', str(runs / 'tuned.yaml')])
+    finally:
+        sys.stdout = stdout
+    return code, out.getvalue(), runs / 'tuned.yaml'
+
+
+def _node_log_likelihood(params: RailModelParameters, segment: Segment, R: float):
+    """Return (ℓ, NIS per step) with the node's IMM classes: RailModel predict/update."""
+    model = RailModel(params)
+    z, t = segment.z[:, 0], segment.t_s
+    state = model.first_estimate(z[0], R)
+    total, nis = 0.0, []
+    for k in range(1, z.shape[0]):
+        state = model.predict(state, float(t[k] - t[k - 1]))
+        y = z[k] - state.means[:, 0]
+        s = state.covariances[:, 0, 0] + R
+        with np.errstate(divide='ignore'):
+            logs = np.log(state.probabilities) - 0.5 * (y * y / s + np.log(s) + math.log(2 * math.pi))
+        top = logs.max()
+        total += top + math.log(np.exp(logs - top).sum())     # log Σ_j c̄_j N(y_j; s_j)
+        state, result = model.update(state, z[k], np.array([[R]]))
+        nis.append(result.nis)
+    return total, np.array(nis)
+
+
+def test_the_stacked_likelihood_is_the_node_imms():
+    """One pass over K settings gives each setting's ℓ and NIS as the node's IMM does."""
+    segment = _segment(7, 1500)
+    base = RailModelParameters()
+    settings = [RailNoise(), RailNoise(1e-3, 1e-5, None, 1.3), RailNoise(1e-2, 1e-3, 1e-5, 0.8)]
+    result = rail_log_likelihoods(base, [segment], settings, innovations=True)
+    for setting, ll, nis in zip(settings, result.log_likelihood, result.nis):
+        params = setting.parameters(base)
+        expected, expected_nis = _node_log_likelihood(params, segment, params.noise_std_m ** 2)
+        # Same equations, other summation orders: each of the 1499 terms agrees to a few
+        # ulps of the state (~1e-13 m on positions of ~1e3 m, the filter forgets older
+        # rounding), so ℓ (~ -2000) agrees to ~1e-12 relative; 1e-9 leaves a margin of 1000.
+        assert ll == pytest.approx(expected, rel=1e-9)
+        # NIS = y²/S with y ~ 1 m: the same ~1e-13 m errors, 1e-8 leaves a wide margin.
+        np.testing.assert_allclose(nis, expected_nis, rtol=0.0, atol=1e-8)
+
+
+def test_the_mixture_innovations_are_the_streaming_estimators():
+    """rail_check's innovations are the StreamEstimator's (no gate), its NIS included."""
+    segment = _segment(8, 300)
+    preset = load_rail_preset()
+    check = rail_check(preset, [segment], 1.0, 2.0)
+    estimator = StreamEstimator(EstimatorSettings(gate_probability=1.0))
+    nis = []
+    for t, z in zip(segment.t_s.tolist(), segment.z[:, 0].tolist()):
+        step = estimator.process(round(t * 1e9), z, 1.0)
+        if step.update is not None:
+            nis.append(step.update.nis)
+    # The same code; only dt differs (float seconds here, integer nanoseconds there) by
+    # ~1e-17 s, which moves a NIS of ~1 by far less than 1e-9.
+    np.testing.assert_allclose(check.innovations.nis(), np.array(nis), rtol=1e-9, atol=0.0)
+    assert RailSeriesFilter(preset).kind == 'imm'
+
+
+def test_the_stencil_gives_the_derivatives_of_a_quadratic():
+    """Central differences are exact on a quadratic: f, gradient and Hessian."""
+    A = np.array([[2.0, 0.5, 0.1], [0.5, 1.0, -0.3], [0.1, -0.3, 3.0]])
+    b = np.array([1.0, -2.0, 0.5])
+    centre = np.array([0.3, -0.1, 0.2])
+    points = centre + stencil(3, 0.01)
+    values = np.array([0.5 * p @ A @ p + b @ p for p in points])
+    f, g, H = derivatives(values, 3, 0.01)
+    # Exact in exact arithmetic; rounding of values ~1 divided by h² = 1e-4: ~1e-12.
+    assert f == pytest.approx(0.5 * centre @ A @ centre + b @ centre, abs=1e-12)
+    np.testing.assert_allclose(g, A @ centre + b, atol=1e-10)
+    np.testing.assert_allclose(H, A, atol=1e-8)
+
+
+def test_tune_rail_from_a_csv_writes_a_tuned_rail_preset(tuned_csv):
+    """The default preset is rail: estimates, checks and a params file pointing at the preset."""
+    code, text, path = tuned_csv
+    assert code == 0, text
+    assert 'preset rail (rail IMM)' in text
+    for label in ('acceleration_noise', 'command_noise', 'measurement_variance',
+                  'NIS, mean of', '2-s prediction RMSE', '2σ coverage'):
+        assert label in text, label
+    params = _params(path)
+    assert set(params) == {'preset', 'measurement_variance'}   # a table carries no R
+    preset = resolve_preset(params['preset'])
+    assert isinstance(preset, RailPreset) and preset.name == 'rail-tuned'
+    # R: the sample variance of 2399 N(0, 1) noises has sd √(2/2399) ≈ 0.029; its
+    # estimate through the filter is as good: 5 sd.
+    assert params['measurement_variance'] == pytest.approx(1.0, abs=5 * math.sqrt(2 / 2399))
+    # The preset keeps σ = √R: R comes back through a square root and a square (2 ulps).
+    assert preset.R[0, 0] == pytest.approx(params['measurement_variance'], rel=1e-15)
+    after = text.split('NIS, mean of')[1].split('\n')[0]
+    assert after.rstrip().endswith('(consistent)'), after
+
+
+def test_the_params_file_loads_as_the_node_and_replay_load_it(tuned_csv):
+    """load_estimator_config (the node's and replay's loader) gives the tuned rail model."""
+    _, _, path = tuned_csv
+    config = load_config([str(path)], [])
+    estimator = StreamEstimator(config.settings)
+    tuned = yaml.safe_load(open(_params(path)['preset']))['parameters']
+    assert estimator.preset.parameters.acceleration_noise == tuned['acceleration_noise']
+    assert estimator.preset.parameters.command_noise == tuned['command_noise']
+    assert config.settings.measurement_variance == _params(path)['measurement_variance']
+
+
+def test_the_tuned_model_predicts_a_held_out_run_no_worse(tuned_csv):
+    """On another seed's run the tuned model's 2-s RMSE is the default's, within its noise."""
+    _, _, path = tuned_csv
+    segment = _segment(HELD_OUT_SEED)
+    default = rail_check(load_rail_preset(), [segment], 1.0, 2.0)
+    tuned_preset = resolve_preset(_params(path)['preset'])
+    tuned = rail_check(tuned_preset, [segment], tuned_preset.R[0, 0], 2.0)
+    count = tuned.prediction.count
+    # Margin: 2-s prediction errors are correlated over ~2 s (20 rows), so an RMSE over
+    # `count` rows rests on ~count/20 independent errors: relative sd 1/√(2·count/20).
+    # The two filters' errors on the same run are positively correlated, so their
+    # difference has at most √2 times that sd; allow 3 of them.
+    margin = 3.0 * math.sqrt(2.0) / math.sqrt(2.0 * count / 20.0)
+    assert tuned.prediction.rmse['position'] <= \
+        default.prediction.rmse['position'] * (1.0 + margin)
+    nis = tuned.innovations.nis()
+    low, high = chi2_mean_bounds(nis.size, 1, 0.99)
+    assert low <= float(np.mean(nis)) <= high
+
+
+def test_a_wrong_start_moves_the_right_way(runs, capsys):
+    """Noises 100x too large (the data bound them from above) come down; ℓ goes up."""
+    with open(load_rail_preset().source, encoding='utf-8') as stream:
+        data = yaml.safe_load(stream)
+    data['parameters']['acceleration_noise'] = 1e-2
+    data['parameters']['command_noise'] = 1e-2
+    wrong = runs / 'wrong.yaml'
+    wrong.write_text(yaml.safe_dump(data))
+    code, text, err = _tune(capsys, runs / 'run.csv', '--config', wrong, '-o',
+                            runs / 'w.yaml', '--fix-r', '1.0')
+    assert code == 0, err
+    tuned = yaml.safe_load(open(_params(runs / 'w.yaml')['preset']))['parameters']
+    assert tuned['acceleration_noise'] < 1e-3 and tuned['command_noise'] < 1e-3
+    line = next(x for x in text.splitlines() if x.startswith('log-likelihood'))
+    before, after = (float(v) for v in
+                     line.replace(',', '').split()[2::2])   # 'before X after Y'
+    assert after > before
+    nis_line = next(x for x in text.splitlines() if x.startswith('NIS'))
+    assert 'before' in nis_line and nis_line.rstrip().endswith('(consistent)')
+
+
+def test_tune_a_bag_then_replay_it_with_the_params_passes_the_nis_check(runs, capsys):
+    """Issue 14's round trip on rail: tune the bag, replay it with the params, NIS consistent."""
+    code, text, err = _tune(capsys, runs / 'run.mcap', '-o', runs / 'bag.yaml')
+    assert code == 0, err
+    assert 'R = 1, as the messages carry it' in text
+    params = _params(runs / 'bag.yaml')
+    assert set(params) == {'preset'}            # the messages' R stays the node's
+    assert kf_train_main(['replay', str(runs / 'run.mcap'), '--params-file',
+                          str(runs / 'bag.yaml'), '-o', str(runs / 'replayed.csv')]) == 0
+    with open(runs / 'replayed.csv', newline='', encoding='utf-8') as stream:
+        nis = np.array([float(row['nis']) for row in csv.DictReader(stream) if row['nis']])
+    low, high = chi2_mean_bounds(nis.size, 1, 0.99)
+    assert nis.size >= DURATION_S * 10 - 2
+    assert low <= float(np.mean(nis)) <= high
+
+
+@pytest.mark.parametrize('args, message', [
+    (['--fix-q', '1'], '--fix-q does not apply to the rail preset'),
+    (['--rail-noises', 'bogus'], "'bogus' is not one of"),
+    (['--initialization', 'prior'], '--initialization prior does not apply'),
+    (['--fix-r', '1', '2'], '--fix-r takes one variance'),
+    (['--preset', 'train', '--rail-noises', 'command_noise'], 'applies to the rail preset'),
+])
+def test_options_that_do_not_apply_are_refused(runs, capsys, args, message):
+    """Usage errors: exit 2 with one line."""
+    with pytest.raises(SystemExit) as exit_info:
+        tune_main([str(runs / 'run.csv'), '-o', str(runs / 'x.yaml')] + args)
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert message in err and err.strip().splitlines()[-1].startswith('kf-train tune: error')
+
+
+def test_bad_input_is_one_line(tmp_path, capsys):
+    """A table without z_position, or one that does not vary: exit 1, one line, no file."""
+    (tmp_path / 'bad.csv').write_text('t,z\n0.1,1\n0.2,2\n0.3,3\n')
+    code, _, err = _tune(capsys, tmp_path / 'bad.csv', '-o', tmp_path / 'p.yaml')
+    assert code == 1 and len(err.strip().splitlines()) == 1 and 'z_position' in err
+    (tmp_path / 'flat.csv').write_text('t,z_position\n' + ''.join(
+        f'{k / 10},5.0\n' for k in range(1, 50)))
+    code, _, err = _tune(capsys, tmp_path / 'flat.csv', '-o', tmp_path / 'p.yaml')
+    assert code == 1 and len(err.strip().splitlines()) == 1 and 'do not vary' in err
+    assert not (tmp_path / 'p.yaml').exists()
