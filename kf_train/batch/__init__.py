@@ -6,7 +6,9 @@ Floor 3, batch paths: whole series at once, each tested against the row-by-row r
 filters many objects (rows tagged by id) as a vectorised bank; :class:`TrainFleet`
 steps N train filters at once; :func:`rts_smooth` / :func:`smooth_series` smooth.
 :class:`RailSeriesFilter` runs the rail preset's IMM row by row, started by the first
-measurement.
+measurement; :func:`rail_log_likelihoods` is its IMM likelihood for many noise settings in
+one pass, which ``kf-train tune --preset rail`` maximises, and :func:`rail_check` its
+innovations and prediction errors.
 :class:`StreamingReplay` filters a table of any length in fixed blocks (bounded
 memory), :func:`filter_table` the same on arrays, :func:`filter_partition` one Dask
 partition.
@@ -36,6 +38,9 @@ from kf_train.batch.noise_parameters import (
     LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
 from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
 from kf_train.batch.partition import filter_partition, partition_meta
+from kf_train.batch.rail_checks import rail_check, RailCheck, RailPrediction
+from kf_train.batch.rail_likelihood import (
+    rail_log_likelihoods, RAIL_NOISE_FIELDS, RailLikelihoods, RailNoise)
 from kf_train.batch.rail_series import RailSeriesFilter
 from kf_train.batch.series import (
     MAX_ABS_TIME_S, run_filter_series, run_series, SeriesError, SeriesResult, time_steps_s)
@@ -44,7 +49,8 @@ from kf_train.batch.smoother import (
 from kf_train.batch.stream import filter_table, GapsFound, StreamingReplay
 
 __all__ = [
-    'RailSeriesFilter',
+    'RailSeriesFilter', 'rail_check', 'RailCheck', 'RailPrediction', 'RAIL_NOISE_FIELDS',
+    'rail_log_likelihoods', 'RailLikelihoods', 'RailNoise',
     'affine_recursion', 'bank_time_steps', 'ConsistencyReport', 'CONVERGED_ULPS',
     'DEFAULT_BLOCK_ROWS', 'DEFAULT_CHUNK_SIZE', 'Estimates', 'filter_partition',
     'filter_table', 'FleetState', 'GapsFound', 'group_rows', 'Groups', 'Innovations',

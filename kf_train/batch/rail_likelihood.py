@@ -35,9 +35,7 @@ import math
 from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch.noise_likelihood import Segment
-from kf_train.filters import RailModelParameters
-from kf_train.filters.imm import RateTransition
-from kf_train.filters.rail_model import relaxation_noise, relaxation_transition
+from kf_train.filters import RailModel, RailModelParameters, RateTransition
 import numpy as np
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -92,22 +90,34 @@ class _Unit(NamedTuple):
     stand: np.ndarray
 
 
-def _unit_matrices(dt_s: float, params: RailModelParameters) -> _Unit:
-    """Return the regimes' F(dt) and their Q(dt) per unit of each noise (Q is linear in them)."""
-    tau = params.response_time_s
-    moving = np.eye(6)
-    moving[:4, :4] = relaxation_transition(dt_s, tau)[0]
-    F = np.array([np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0]), moving, moving, moving])
-    acceleration = np.zeros((4, 6, 6))
-    command = np.zeros((4, 6, 6))
-    # Q_moving = relaxation_noise(dt, τ, q_a, q_ℓ) = q_a·Q(1, 0) + q_ℓ·Q(0, 1) (linear)
-    acceleration[1:, :4, :4] = relaxation_noise(dt_s, tau, 1.0, 0.0)
-    command[1:, :4, :4] = relaxation_noise(dt_s, tau, 0.0, 1.0)
-    capability = np.zeros((4, 6, 6))
-    capability[:, 4, 4] = capability[:, 5, 5] = dt_s     # A, B: random walk, every regime
-    stand = np.zeros((4, 6, 6))
-    stand[STAND, 0, 0] = dt_s                             # stand_noise · dt on p
-    return _Unit(F, F.swapaxes(1, 2).copy(), acceleration, command, capability, stand)
+class _UnitModels:
+    """
+    The regimes' F(dt) and their Q(dt) per unit of each noise, from the node's RailModel.
+
+    Q is linear in the noises (RailModel's moving Q is relaxation_noise(dt, τ, q_a, q_ℓ)
+    = q_a·Q(1, 0) + q_ℓ·Q(0, 1), plus capability_noise·dt on A and B; stand's is
+    stand_noise·dt on p and capability_noise·dt on A and B), so the RailModel of each
+    unit noise gives the unit matrices, and a setting's Q is their weighted sum.
+    """
+
+    def __init__(self, base: RailModelParameters):
+        """Build one RailModel per unit noise (the others 0)."""
+        import dataclasses
+        zero = dataclasses.replace(base, acceleration_noise=0.0, command_noise=0.0,
+                                   capability_noise=0.0, stand_noise=0.0)
+        self.models = [RailModel(dataclasses.replace(zero, **{name: 1.0}))
+                       for name in RAIL_NOISE_FIELDS + ('stand_noise',)]
+        self.kept = {}
+
+    def __call__(self, dt_s: float) -> _Unit:
+        """Return the unit matrices for dt_s (kept per dt)."""
+        unit = self.kept.get(dt_s)
+        if unit is None:
+            modes = self.models[0].modes
+            F = np.array([mode.F(dt_s) for mode in modes])
+            Qs = [np.array([mode.Q(dt_s) for mode in model.modes]) for model in self.models]
+            unit = self.kept[dt_s] = _Unit(F, F.swapaxes(1, 2).copy(), *Qs)
+        return unit
 
 
 def _entry(params: RailModelParameters):
@@ -245,16 +255,14 @@ def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innov
     entry, rates = _entry(base), RateTransition(base.rates())
     brake_rates = base.rates()[BRAKE]
     identity = np.tile(np.eye(6), (count, 4, 1, 1))
-    units, bases = {}, {}
+    units, bases = _UnitModels(base), {}
     weights = (q_a[:, None, None, None], q_l[:, None, None, None], q_c[:, None, None, None])
     dts = np.diff(t)
     for k in range(rows):
         dt = float(dts[k])
-        unit = units.get(dt)
-        if unit is None:
-            unit = units[dt] = _unit_matrices(dt, base)
-            matrix = rates.matrix(dt)
-            bases[dt] = matrix
+        unit = units(dt)
+        if dt not in bases:
+            bases[dt] = rates.matrix(dt)
         matrix = _transition(bases[dt], base, brake_rates, dt, means, covs)
         cbar, mixed_x, mixed_P = _mix(matrix, probabilities, means, covs, entry)
         cbar = cbar / cbar.sum(axis=1, keepdims=True)                # as IMM.predict

@@ -21,7 +21,7 @@ import math
 import time
 from typing import Callable, List, NamedTuple, Sequence, Tuple
 
-from kf_train.batch.rail_likelihood import RailNoise
+from kf_train.batch import RailNoise
 from kf_train.cli.noise_fit import _normal_quantile
 import numpy as np
 

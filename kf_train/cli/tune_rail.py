@@ -25,9 +25,7 @@ import os
 import sys
 from typing import List, Optional
 
-from kf_train.batch import nis_consistency
-from kf_train.batch.rail_checks import rail_check
-from kf_train.batch.rail_likelihood import rail_log_likelihoods, RailNoise
+from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
 from kf_train.cli.rail_fit import fit_rail_noise, RailFit
 from kf_train.cli.replay import write_atomic
 from kf_train.cli.tune_inputs import reader_for, TopicOptions
@@ -176,52 +174,65 @@ def _setup(args, preset: RailPreset, noises: List[str]):
     return data, notes, fixed, names, before, args.fix_r is not None or fixed_r is None
 
 
+def _comments(args, fit: RailFit, rows: int, spec_label: str, preset_output: str,
+              notes: List[str]) -> List[str]:
+    """Return the params file's leading comments."""
+    use = os.path.basename(args.output)
+    comments = [f'Written by kf-train tune on {datetime.date.today().isoformat()} from '
+                f'{args.input} ({rows} innovations), preset {spec_label}: the tuned rail '
+                f'preset is {os.path.basename(preset_output)}.']
+    comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} interval '
+                 f'[{_number(e.low)}, {_number(e.high)}]' for e in fit.estimates]
+    comments += [f'input: {line}' for line in notes]
+    comments.append(f'Use: estimator --ros-args --params-file {use} (or kf-train replay BAG '
+                    f'--params-file {use})')
+    return comments
+
+
+def _tune(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
+    """Estimate, check, write the files; return the report (ValueError for bad input)."""
+    from kf_train.cli.tune import params_yaml
+    data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
+    segments = data.segments
+    rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
+    if rows < 2:
+        raise ValueError('no innovations to estimate from: the data need at least 3 rows')
+    if args.output == '-' and not args.preset_output:
+        raise ValueError('--preset-output is needed with --output - (the params file '
+                         'points at the tuned rail preset file)')
+    base = preset.parameters
+
+    def likelihoods(settings):
+        return rail_log_likelihoods(base, segments, settings).log_likelihood
+
+    def check(setting):
+        tuned = preset._replace(parameters=setting.parameters(base))
+        return rail_check(tuned, segments, setting.measurement_variance, horizon_s)
+    fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence)
+    horizon_s = args.horizon or preset.horizon_s or 2.0
+    lls = likelihoods([before, fit.setting])
+    preset_output = args.preset_output or default_preset_output(args.output)
+    params = {'preset': os.path.abspath(preset_output)}
+    if r_written:
+        params['measurement_variance'] = float(fit.setting.measurement_variance)
+    text = '\n'.join(
+        [f'kf-train tune: preset {spec_label} (rail IMM), {rows + len(segments)} rows '
+         f'({len(segments)} object{"s" * (len(segments) != 1)}), {rows} innovations, '
+         'initialization first_measurement']
+        + [f'input: {line}' for line in notes] + _fit_lines(fit, args.confidence)
+        + _check_lines(check(before), check(fit.setting), float(lls[0]), float(lls[1])))
+    # The messages' R stays theirs: the preset file keeps its own R then.
+    written = fit.setting if r_written else fit.setting._replace(measurement_variance=None)
+    write_atomic(preset_output, [tuned_rail_yaml(preset, written)])
+    comments = _comments(args, fit, rows, spec_label, preset_output, notes)
+    write_atomic(args.output, [params_yaml(params, comments)])
+    return text + f'\nwrote {args.output} and {preset_output}'
+
+
 def run_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> int:
-    """Tune the rail preset ``preset`` on ``args.input``; print the report; return the exit code."""
+    """Tune the rail preset ``preset`` on ``args.input``, print the report; return the code."""
     try:
-        data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
-        segments = data.segments
-        rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
-        if rows < 2:
-            raise ValueError('no innovations to estimate from: the data need at least 3 rows')
-        base = preset.parameters
-
-        def likelihoods(settings):
-            return rail_log_likelihoods(base, segments, settings).log_likelihood
-        fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence)
-        horizon_s = args.horizon or preset.horizon_s or 2.0
-        lls = likelihoods([before, fit.setting])
-
-        def check(setting):
-            tuned = preset._replace(parameters=setting.parameters(base))
-            return rail_check(tuned, segments, setting.measurement_variance, horizon_s)
-        report_before, report_after = check(before), check(fit.setting)
-        preset_output = args.preset_output or default_preset_output(args.output)
-        if args.output == '-' and not args.preset_output:
-            raise ValueError('--preset-output is needed with --output - (the params file '
-                             'points at the tuned rail preset file)')
-        params = {'preset': os.path.abspath(preset_output)}
-        if r_written:
-            params['measurement_variance'] = float(fit.setting.measurement_variance)
-        comments = [f'Written by kf-train tune on {datetime.date.today().isoformat()} from '
-                    f'{args.input} ({rows} innovations), preset {spec_label}: the tuned rail '
-                    f'preset is {os.path.basename(preset_output)}.']
-        comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} interval '
-                     f'[{_number(e.low)}, {_number(e.high)}]' for e in fit.estimates]
-        comments += [f'input: {line}' for line in notes]
-        use = os.path.basename(args.output)
-        comments.append(f"Use: estimator --ros-args --params-file {use}"
-                        f' (or kf-train replay BAG --params-file {os.path.basename(args.output)})')
-        from kf_train.cli.tune import params_yaml
-        text = '\n'.join(
-            [f'kf-train tune: preset {spec_label} (rail IMM), {rows + len(segments)} rows '
-             f'({len(segments)} object{"s" * (len(segments) != 1)}), {rows} innovations, '
-             'initialization first_measurement']
-            + [f'input: {line}' for line in notes] + _fit_lines(fit, args.confidence)
-            + _check_lines(report_before, report_after, float(lls[0]), float(lls[1])))
-        write_atomic(preset_output, [tuned_rail_yaml(preset, fit.setting._replace(
-            measurement_variance=fit.setting.measurement_variance if r_written else None))])
-        write_atomic(args.output, [params_yaml(params, comments)])
+        text = _tune(args, preset, noises, spec_label)
     except ImportError as error:
         print(f'kf-train tune: error: needs scipy ({error}); install it with '
               "'pip install scipy'", file=sys.stderr)
@@ -229,9 +240,7 @@ def run_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> in
     except ValueError as error:
         print(f'kf-train tune: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT
-    stream = sys.stderr if args.output == '-' else sys.stdout
-    print(text, file=stream)
-    print(f'wrote {args.output} and {preset_output}', file=stream)
+    print(text, file=sys.stderr if args.output == '-' else sys.stdout)
     return EXIT_OK
 
 

@@ -80,7 +80,8 @@ def _node_log_likelihood(params: RailModelParameters, segment: Segment, R: float
         y = z[k] - state.means[:, 0]
         s = state.covariances[:, 0, 0] + R
         with np.errstate(divide='ignore'):
-            logs = np.log(state.probabilities) - 0.5 * (y * y / s + np.log(s) + math.log(2 * math.pi))
+            logs = np.log(state.probabilities) - 0.5 * (y * y / s + np.log(s)
+                                                        + math.log(2 * math.pi))
         top = logs.max()
         total += top + math.log(np.exp(logs - top).sum())     # log Σ_j c̄_j N(y_j; s_j)
         state, result = model.update(state, z[k], np.array([[R]]))
