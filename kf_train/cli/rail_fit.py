@@ -192,13 +192,26 @@ def fit_rail_noise(likelihoods: Likelihoods, names: Sequence[str], start: RailNo
     estimates = _estimates(names, vector, H * rows, confidence, bounds)
     setting = _setting(names, vector, fixed)._replace(
         **{names[i]: 0.0 for i, (_, zero) in bounds.items() if zero})
-    return RailFit(setting, estimates, ll_hat, start_ll, stencils.passes + 1 + 2 * bool(extra),
+    return RailFit(setting, estimates, ll_hat, start_ll, stencils.passes + 1 + 3 * bool(extra),
                    stencils.evaluations + grid_points + extra, time.perf_counter() - began,
                    bool(result.success), str(result.message))
 
 
-SCAN = np.arange(0.0, 12.0 * math.log(10.0), 0.25)
-"""Offsets in log θ at which an upper bound is looked for (12 decades above θ̂)."""
+LN10 = math.log(10.0)
+COARSE = np.arange(0.0, 17.0) * LN10
+"""Offsets in log θ of the first scan for an upper bound: whole decades above θ̂."""
+FINE = np.linspace(0.1, 1.0, 10) * LN10
+"""Offsets within the decade where the first scan crossed: tenths of a decade."""
+
+
+def _crossing(excess: np.ndarray, offsets: np.ndarray, first: float, at_first: float):
+    """Return the offset where ``excess`` (increasing) crosses 0, linear in log θ; None if not."""
+    past = np.flatnonzero(excess > 0.0)
+    if past.size == 0:
+        return None
+    k = int(past[0])
+    a, ea = (offsets[k - 1], excess[k - 1]) if k else (first, at_first)
+    return a + (offsets[k] - a) * (-ea) / (excess[k] - ea)
 
 
 def _boundary(likelihoods: Likelihoods, names, fixed: RailNoise, vector, ll_hat: float,
@@ -210,8 +223,9 @@ def _boundary(likelihoods: Likelihoods, names, fixed: RailNoise, vector, ll_hat:
     Liang 1987), so θ_i = 0 is not rejected when 2(ℓ̂ − ℓ(θ_i = 0)) <= χ²₁(1 − 2α),
     and the one-sided bound is where ℓ has dropped by that much. The others are held
     at their estimates (a conditional bound: one pass for all, where a profile would
-    re-optimise them at every point; the noises here are nearly uncorrelated at their
-    maxima, see docs/rail.md). "At zero": ℓ(θ_i = 0) is within 1e-3 of ℓ̂.
+    re-optimise them at every point). Found in two passes: whole decades above θ̂,
+    then tenths of the decade that crossed, interpolated linearly in log θ (to ~1 % of
+    θ). "At zero": ℓ(θ_i = 0) is within 1e-3 of ℓ̂.
     """
     from kf_train.cli.noise_fit import _boundary_threshold
     threshold = _boundary_threshold(confidence)
@@ -222,25 +236,30 @@ def _boundary(likelihoods: Likelihoods, names, fixed: RailNoise, vector, ll_hat:
     compatible = [i for i in process if drops[i] <= threshold]
     if not compatible:
         return {}, len(process)
-    settings = []
+
+    def scan(offsets_of):
+        settings = [base._replace(**{names[i]: float(math.exp(vector[i] + o))})
+                    for i in compatible for o in offsets_of(i)]
+        lls = np.asarray(likelihoods(settings)).reshape(len(compatible), -1)
+        return {i: ll_hat - row - threshold for i, row in zip(compatible, lls)}, len(settings)
+    coarse, count = scan(lambda i: COARSE)
+    decade = {}
     for i in compatible:
-        settings += [base._replace(**{names[i]: float(math.exp(vector[i] + o))}) for o in SCAN]
-    lls = np.asarray(likelihoods(settings)).reshape(len(compatible), SCAN.size)
+        past = np.flatnonzero(coarse[i] > 0.0)
+        decade[i] = None if past.size == 0 else int(past[0])
+    fine, more = scan(lambda i: COARSE[max((decade[i] or 1) - 1, 0)] + FINE)
     out = {}
-    for i, row in zip(compatible, lls):
-        excess = ll_hat - row - threshold                  # > 0 past the bound
-        past = np.flatnonzero(excess > 0.0)
-        if past.size == 0:
+    for i in compatible:
+        if decade[i] is None:
             upper = math.inf
+        elif decade[i] == 0:
+            upper = math.exp(vector[i])                     # already past at θ̂ itself
         else:
-            k = int(past[0])
-            a = SCAN[k - 1] if k else 0.0
-            ea = excess[k - 1] if k else -threshold
-            # linear interpolation of the crossing in log θ
-            offset = a + (SCAN[k] - a) * (-ea) / (excess[k] - ea) if k else SCAN[0]
-            upper = math.exp(vector[i] + offset)
+            low = COARSE[decade[i] - 1]
+            offset = _crossing(fine[i], low + FINE, low, coarse[i][decade[i] - 1])
+            upper = math.exp(vector[i] + (COARSE[decade[i]] if offset is None else offset))
         out[i] = (upper, drops[i] <= 1e-3)
-    return out, len(process) + len(settings)
+    return out, len(process) + count + more
 
 
 def _estimates(names: List[str], vector: np.ndarray, H: np.ndarray, confidence: float,

@@ -51,7 +51,7 @@ from kf_train.batch import (
     NoiseSetting, prediction_errors, PredictionReport, STATE_UNITS, TuningProblem,
     VARIANCE_PARAMETERS)
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
-from kf_train.cli.replay import write_atomic
+from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
 from kf_train.cli.tune_rail import check_rail_args, rail_preset_of, run_rail
 from kf_train.presets import (
@@ -370,6 +370,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.rail_noises is not None:
         parser.error('--rail-noises applies to the rail preset only')
     try:
+        for target in (args.output, args.preset_output):
+            if target not in (None, '-'):
+                check_file_target(target)       # before the work, not after
         spec, preset, problem, parameterisation, before, notes = _setup(args)
         horizon_s = args.horizon or preset.horizon_s or DEFAULT_HORIZON_S
         report = run_tuning(problem, parameterisation, horizon_s, args.confidence, before)

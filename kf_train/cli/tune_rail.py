@@ -27,7 +27,7 @@ from typing import List, Optional
 
 from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
 from kf_train.cli.rail_fit import fit_rail_noise, RailFit
-from kf_train.cli.replay import write_atomic
+from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.tune_inputs import reader_for, TopicOptions
 from kf_train.presets import rail_preset_from_mapping, RailPreset
 import numpy as np
@@ -192,14 +192,18 @@ def _comments(args, fit: RailFit, rows: int, spec_label: str, preset_output: str
 def _tune(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
     """Estimate, check, write the files; return the report (ValueError for bad input)."""
     from kf_train.cli.tune import params_yaml
+    if args.output == '-' and not args.preset_output:
+        raise ValueError('--preset-output is needed with --output - (the params file '
+                         'points at the tuned rail preset file)')
+    preset_output = args.preset_output or default_preset_output(args.output)
+    for target in (args.output, preset_output):
+        if target != '-':
+            check_file_target(target)       # before minutes of work, not after
     data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
     segments = data.segments
     rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
     if rows < 2:
         raise ValueError('no innovations to estimate from: the data need at least 3 rows')
-    if args.output == '-' and not args.preset_output:
-        raise ValueError('--preset-output is needed with --output - (the params file '
-                         'points at the tuned rail preset file)')
     base = preset.parameters
 
     def likelihoods(settings):
@@ -211,7 +215,6 @@ def _tune(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
     fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence)
     horizon_s = args.horizon or preset.horizon_s or 2.0
     lls = likelihoods([before, fit.setting])
-    preset_output = args.preset_output or default_preset_output(args.output)
     params = {'preset': os.path.abspath(preset_output)}
     if r_written:
         params['measurement_variance'] = float(fit.setting.measurement_variance)

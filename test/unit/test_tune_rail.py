@@ -252,3 +252,7 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     code, _, err = _tune(capsys, tmp_path / 'flat.csv', '-o', tmp_path / 'p.yaml')
     assert code == 1 and len(err.strip().splitlines()) == 1 and 'do not vary' in err
     assert not (tmp_path / 'p.yaml').exists()
+    code, _, err = _tune(capsys, tmp_path / 'flat.csv', '-o', tmp_path / 'no' / 'p.yaml')
+    assert code == 1 and len(err.strip().splitlines()) == 1 and 'does not exist' in err
+    code, _, err = _tune(capsys, tmp_path / 'flat.csv', '-o', '-')
+    assert code == 1 and len(err.strip().splitlines()) == 1 and '--preset-output' in err
