@@ -31,6 +31,7 @@ acceleration noise q_a, the command noise q_ℓ, the capability noise and the
 measurement variance R (:class:`RailNoise`); everything else is the preset's.
 """
 
+import dataclasses
 import math
 from typing import NamedTuple, Optional, Sequence
 
@@ -58,7 +59,6 @@ class RailNoise(NamedTuple):
 
     def parameters(self, base: RailModelParameters) -> RailModelParameters:
         """Return ``base`` with this setting's noises (R as noise_std_m)."""
-        import dataclasses
         fields = {name: getattr(self, name) for name in RAIL_NOISE_FIELDS
                   if getattr(self, name) is not None}
         if self.measurement_variance is not None:
@@ -102,7 +102,6 @@ class _UnitModels:
 
     def __init__(self, base: RailModelParameters):
         """Build one RailModel per unit noise (the others 0)."""
-        import dataclasses
         zero = dataclasses.replace(base, acceleration_noise=0.0, command_noise=0.0,
                                    capability_noise=0.0, stand_noise=0.0)
         self.models = [RailModel(dataclasses.replace(zero, **{name: 1.0}))

@@ -148,7 +148,9 @@ class _Stencils:
 def _start(likelihoods: Likelihoods, names, fixed: RailNoise, vector: np.ndarray):
     """Return the best of a grid of decades around ``vector`` for the process noises (one pass)."""
     process = [i for i, n in enumerate(names) if n != 'measurement_variance']
-    grids = np.array(np.meshgrid(*[START_DECADES] * len(process), indexing='ij'))
+    # 5 values per noise (25 settings for two); 3 for three noises (27, not 125)
+    decades = START_DECADES if len(process) <= 2 else START_DECADES[::2]
+    grids = np.array(np.meshgrid(*[decades] * len(process), indexing='ij'))
     grids = grids.reshape(len(process), -1).T * math.log(10.0)
     points = np.repeat(vector[None], grids.shape[0], axis=0)
     points[:, process] += grids

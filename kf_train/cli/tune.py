@@ -53,7 +53,7 @@ from kf_train.batch import (
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
 from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
-from kf_train.cli.tune_rail import check_rail_args, rail_preset_of, run_rail
+from kf_train.cli.tune_rail import add_rail_arguments, check_rail_args, rail_preset_of, run_rail
 from kf_train.presets import (
     available_presets, load_preset, load_preset_file, Preset, preset_from_mapping)
 import numpy as np
@@ -218,9 +218,10 @@ def _parser() -> argparse.ArgumentParser:
     """Return the argument parser."""
     parser = argparse.ArgumentParser(
         prog='kf-train tune',
-        description="Estimate the estimator's process noise density q and measurement "
-                    'variance R from logged measurements (maximum likelihood of the '
-                    "filter's innovations) and write them as a ROS params file.",
+        description="Estimate the estimator's noise from logged measurements (maximum "
+                    "likelihood of the filter's innovations: the rail IMM's acceleration "
+                    'and command noises by default, q for the linear presets; R where the '
+                    'data do not carry it) and write them as a ROS params file.',
         epilog='Input: what kf-train replay reads: a CSV or Parquet (t, z_<measurement>, '
                'u, optional id, optional truth columns true_<state> for the prediction '
                'RMSE), or a rosbag2 bag (a directory, .mcap or .db3: the '
@@ -259,10 +260,7 @@ def _parser() -> argparse.ArgumentParser:
                              'else 2)')
     parser.add_argument('--confidence', metavar='P', type=float, default=0.95,
                         help='confidence of the intervals (0.95)')
-    parser.add_argument('--rail-noises', metavar='NAMES',
-                        help='rail preset: the noises to estimate, comma-separated '
-                             '(default acceleration_noise,command_noise; also '
-                             'capability_noise); R too unless the data carry it')
+    add_rail_arguments(parser)
     bag = parser.add_argument_group('bag input (a rosbag2 directory, .mcap or .db3)')
     bag.add_argument('--topic', metavar='NAME', default=None,
                      help="the measurement topic (default: 'measurement' resolved in the "

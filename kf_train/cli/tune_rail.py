@@ -40,6 +40,14 @@ TUNABLE_NOISES = ('acceleration_noise', 'command_noise', 'capability_noise')
 _REFUSED = (('fix_q', '--fix-q'), ('initial_state', '--initial-state'), ('t0', '--t0'))
 
 
+def add_rail_arguments(parser) -> None:
+    """Add the rail preset's own option to ``kf-train tune``'s parser."""
+    parser.add_argument('--rail-noises', metavar='NAMES',
+                        help='rail preset: the noises to estimate, comma-separated '
+                             '(default acceleration_noise,command_noise; also '
+                             'capability_noise); R too unless the data carry it')
+
+
 def check_rail_args(parser, args) -> List[str]:
     """Refuse the options that have no meaning for the rail preset (exit 2); return the noises."""
     for attribute, option in _REFUSED:
