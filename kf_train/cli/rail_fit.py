@@ -146,7 +146,7 @@ class _Stencils:
 
 
 def _start(likelihoods: Likelihoods, names, fixed: RailNoise, vector: np.ndarray):
-    """Return the best of a grid of decades around ``vector`` for the process noises (one pass)."""
+    """Return (the best of a grid of decades around ``vector``, its size, ℓ at ``vector``)."""
     process = [i for i, n in enumerate(names) if n != 'measurement_variance']
     # 5 values per noise (25 settings for two); 3 for three noises (27, not 125)
     decades = START_DECADES if len(process) <= 2 else START_DECADES[::2]
@@ -156,7 +156,8 @@ def _start(likelihoods: Likelihoods, names, fixed: RailNoise, vector: np.ndarray
     points[:, process] += grids
     ll = likelihoods([_setting(names, p, fixed) for p in points])
     ll = np.where(np.isfinite(ll), ll, -np.inf)
-    return points[int(np.argmax(ll))], points.shape[0]
+    at_start = float(ll[int(np.flatnonzero(np.all(grids == 0.0, axis=1))[0])])
+    return points[int(np.argmax(ll))], points.shape[0], at_start
 
 
 def fit_rail_noise(likelihoods: Likelihoods, names: Sequence[str], start: RailNoise,
@@ -178,8 +179,7 @@ def fit_rail_noise(likelihoods: Likelihoods, names: Sequence[str], start: RailNo
     # what the data can detect, and the optimiser stops there (gradient ~ 0).
     low, high = vector - 10.0 * math.log(10.0), vector + 6.0 * math.log(10.0)
     stencils = _Stencils(likelihoods, names, fixed, rows)
-    start_ll = -stencils.at(vector)[0] * rows
-    vector, grid_points = _start(likelihoods, names, fixed, vector)
+    vector, grid_points, start_ll = _start(likelihoods, names, fixed, vector)
 
     def clipped(v):
         return np.clip(v, low, high)
