@@ -256,3 +256,45 @@ def test_bad_input_is_one_line(tmp_path, capsys):
     assert code == 1 and len(err.strip().splitlines()) == 1 and 'does not exist' in err
     code, _, err = _tune(capsys, tmp_path / 'flat.csv', '-o', '-')
     assert code == 1 and len(err.strip().splitlines()) == 1 and '--preset-output' in err
+
+
+def test_the_fit_finds_a_known_maximum_and_its_intervals():
+    """On ℓ quadratic in log θ, the fit returns exp(m) and exp(m ± z·s) (the Wald interval)."""
+    from kf_train.cli.rail_fit import fit_rail_noise
+    m = np.array([math.log(3e-4), math.log(2e-5), math.log(1.1)])
+    sd = np.array([0.3, 0.5, 0.02])
+    names = ['acceleration_noise', 'command_noise', 'measurement_variance']
+
+    def likelihoods(settings):
+        with np.errstate(divide='ignore'):     # the boundary check sets a noise to 0
+            v = np.log([[getattr(s, n) for n in names] for s in settings])
+        return -0.5 * np.sum(((v - m) / sd) ** 2, axis=1)
+    start = RailNoise(1e-4, 1e-4, 1e-6, 1.0)
+    fit = fit_rail_noise(likelihoods, names, start, start, rows=1000)
+    z = 1.959963984540054
+    for estimate, centre, s in zip(fit.estimates, m, sd):
+        # The stencil is exact on a quadratic; Newton's answer is limited by gtol (1e-7
+        # per row of 1000 rows: |Δv| <= 1e-4·s²) and rounding: 1e-6 relative is ample.
+        assert estimate.value == pytest.approx(math.exp(centre), rel=1e-6)
+        assert estimate.low == pytest.approx(math.exp(centre - z * s), rel=1e-6)
+        assert estimate.high == pytest.approx(math.exp(centre + z * s), rel=1e-6)
+
+
+def test_a_noise_the_data_cannot_tell_from_zero_gets_zero_and_a_bound():
+    """ℓ = −c·q_a falls from q_a = 0: q_a = 0, bound where c·q_a = χ²₁(0.90)/2."""
+    from kf_train.cli.rail_fit import fit_rail_noise
+    c = 1000.0
+
+    def likelihoods(settings):
+        return np.array([-c * s.acceleration_noise - (
+            0.5 * ((math.log(s.command_noise) - math.log(5e-5)) / 0.4) ** 2
+            if s.command_noise > 0.0 else math.inf) for s in settings])
+    start = RailNoise(1e-4, 1e-4, 1e-6, 1.0)
+    fit = fit_rail_noise(likelihoods, ['acceleration_noise', 'command_noise'], start, start,
+                         rows=1000)
+    q_a, q_l = fit.estimates
+    assert fit.setting.acceleration_noise == 0.0 and q_a.value == 0.0 and q_a.low == 0.0
+    # χ²₁(0.90)/2 = 1.3528; the bound is interpolated linearly in log θ between tenths of
+    # a decade of a function linear in θ: error below (10^0.1 − 1)²/8 ≈ 1 %.
+    assert q_a.high == pytest.approx(1.3527717 / c, rel=0.02)
+    assert q_l.value == pytest.approx(5e-5, rel=1e-4)
