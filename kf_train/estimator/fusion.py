@@ -186,9 +186,16 @@ class Fusion:
 
     def _gated_update(self, x0, P0, t_a: int, t_b: int, z: np.ndarray, R: np.ndarray):
         """Return (x, P, result, prediction ahead, exact) or reject as outlier/numerical."""
+        model = self.config.model
         try:
-            x, P, u, exact = propagate(self.controls, self.config.model, x0, P0, t_a, t_b)
-            x, P, result = self.config.model.update(x, P, z, R)
+            if self.controls is None and hasattr(model, 'predict_update'):
+                # One call, the same numbers as predict then update (the rail IMM's:
+                # its state between the two is never combined into an (x, P)).
+                x, P, result = model.predict_update(x0, P0, (t_b - t_a) / NS_PER_S, z, R)
+                u, exact = None, True
+            else:
+                x, P, u, exact = propagate(self.controls, model, x0, P0, t_a, t_b)
+                x, P, result = model.update(x, P, z, R)
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'update failed: {error}')
         threshold = self.config.gate_threshold

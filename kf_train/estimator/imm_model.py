@@ -47,10 +47,10 @@ class IMMModel:
         """Return the combined (x, P) of ``state``, x remembering the state."""
         x, P = self.imm.estimate(state)
         key = id(x)
-        # The weak reference tells x from a later array that reuses its id; the entry
-        # goes when x is freed, since nothing can rewind to it any more.
-        self.states[key] = (weakref.ref(x), state)
-        weakref.finalize(x, self.states.pop, key, None)
+        # The weak reference tells x from a later array that reuses its id; its
+        # callback drops the entry when x is freed, since nothing can rewind to it any
+        # more (a plain callback: weakref.finalize costs several times as much).
+        self.states[key] = (weakref.ref(x, _forget(self.states, key)), state)
         return x, P
 
     def predict(self, x, P, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
@@ -67,6 +67,27 @@ class IMMModel:
         x, P = self._keep(state)
         return x, P, result
 
+    def predict_update(self, x, P, dt_s: float, z, R=None
+                       ) -> Tuple[np.ndarray, np.ndarray, UpdateResult]:
+        """
+        Return :meth:`update` after :meth:`predict` over dt_s, the same numbers to the bit.
+
+        The IMM state in between is never combined into an (x, P) (nothing reads it):
+        the streaming estimator fuses an in-order measurement with this one call.
+        """
+        state, result = self.imm.update(self.imm.predict(self.state_of(x, P), dt_s), z, R)
+        x, P = self._keep(state)
+        return x, P, result
+
     def mode_probabilities(self, x, P) -> np.ndarray:
         """Return the mode probabilities behind x (the initial ones if none)."""
         return self.state_of(x, P).probabilities.copy()
+
+
+def _forget(states: Dict[int, tuple], key: int):
+    """Return the weak-reference callback that drops ``states[key]`` once its mean is freed."""
+    def callback(reference) -> None:
+        kept = states.get(key)
+        if kept is not None and kept[0] is reference:
+            del states[key]
+    return callback

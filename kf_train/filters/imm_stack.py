@@ -25,6 +25,7 @@ _LOG_2PI = math.log(2.0 * math.pi)
 # How many dt values a LinearStack keeps stacked matrices for (a stream repeats a few).
 _KEPT = 64
 _ONES = {}
+_IDENTITIES = {}
 
 
 class StackUpdate(NamedTuple):
@@ -71,10 +72,21 @@ def _ones(size: int) -> np.ndarray:
     return ones
 
 
+def _identities(count: int, n: int) -> np.ndarray:
+    """Return a new (count, n, n) stack of identities (copied from one kept per shape)."""
+    template = _IDENTITIES.get((count, n))
+    if template is None:
+        template = _IDENTITIES[count, n] = np.tile(np.eye(n), (count, 1, 1))
+        template.flags.writeable = False
+    return template.copy()
+
+
 def symmetrised(P: np.ndarray) -> np.ndarray:
     """Return (P + Pᵀ)/2 of each matrix of a stack (exactly symmetric)."""
     # (Copying the transpose first is faster than adding the strided view.)
-    return (P + P.swapaxes(-1, -2).copy()) * 0.5
+    P = P + P.swapaxes(-1, -2).copy()
+    P *= 0.5
+    return P
 
 
 def combine(means: np.ndarray, covariances: np.ndarray, probabilities: np.ndarray):
@@ -82,9 +94,11 @@ def combine(means: np.ndarray, covariances: np.ndarray, probabilities: np.ndarra
     x = probabilities.dot(means)                                     # x = Σ μ_j x_j
     d = means - x
     n = means.shape[1]
-    P = probabilities.dot(covariances.reshape(-1, n * n)).reshape(n, n) + \
-        (probabilities[:, None] * d).T.dot(d)                        # Σ μ_j (P_j + d dᵀ)
-    return x, (P + P.T) * 0.5
+    P = (probabilities[:, None] * d).T.dot(d)                        # Σ μ_j d dᵀ
+    P += probabilities.dot(covariances.reshape(-1, n * n)).reshape(n, n)  # + Σ μ_j P_j
+    P += P.T                                                         # symmetrised:
+    P *= 0.5                                                         # (P + Pᵀ) / 2
+    return x, P
 
 
 def mix(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray):
@@ -145,19 +159,24 @@ def update(means: np.ndarray, covariances: np.ndarray, z: float, H: np.ndarray,
         y = z - np.matmul(H, means[:, :, None]).reshape(count)       # y = z - H x⁻
         s = np.matmul(HP, H.swapaxes(1, 2)).reshape(count) + R       # s = H P⁻ Hᵀ + R
     else:
-        HP = covariances[:, selected:selected + 1, :]
+        HP = covariances[:, selected, :]
         y = z - means[:, selected]
         s = covariances[:, selected, selected] + R
     s_list = s.tolist()
     if 0.0 in s_list:
         raise ValueError(f'innovation covariance S = H P Hᵀ + R is singular: {s_list}')
     K = HP.reshape(means.shape) / s[:, None]                         # K = P⁻ Hᵀ / s
-    x = means + K * y[:, None]                                       # x = x⁻ + K y
-    I_KH = identity - K[:, :, None] * H                              # I - K H
+    x = K * y[:, None]
+    x += means                                                       # x = x⁻ + K y
+    if selected is None:
+        I_KH = identity - K[:, :, None] * H                          # I - K H
+    else:
+        I_KH = _identities(count, means.shape[1])                    # I - K e_kᵀ: the
+        I_KH[:, :, selected] -= K                                    # same numbers
     # Joseph form, P = (I - K H) P⁻ (I - K H)ᵀ + K R Kᵀ: stays symmetric and positive
     # semi-definite even when K is not exactly optimal.
-    P = np.matmul(np.matmul(I_KH, covariances), I_KH.swapaxes(1, 2)) + \
-        (K * R[:, None])[:, :, None] * K[:, None, :]
+    P = np.matmul(np.matmul(I_KH, covariances), I_KH.swapaxes(1, 2))
+    P += (K * R[:, None])[:, :, None] * K[:, None, :]
     P = symmetrised(P)
     check_finite(x, P, 'update')
     logs = []

@@ -47,6 +47,7 @@ from typing import Dict, Tuple
 from kf_train.filters import imm_stack
 from kf_train.filters.imm import IMM, IMMFilter, IMMState, RateTransition
 from kf_train.filters.models import LinearModel
+from kf_train.filters.rail_mixing import EntryGather
 from kf_train.filters.rail_stop import StopFinder
 from kf_train.filters.validation import as_duration
 import numpy as np
@@ -337,30 +338,11 @@ class RailModel(IMM):
         x0_j = Σ_i ω_ij x_ji, P0_j = Σ_i ω_ij (P_ji + d dᵀ), d = x_ji - x0_j, where
         (x_ji, P_ji) is component i as it enters regime j: x' = T_j x, P' = T_j P Tⱼᵀ + W_j
         for i ≠ j, itself for i = j. T_j is the identity but for ℓ's row (A's, -B's or
-        none), so x_ji and P_ji differ from x_i, P_i only in ℓ's entry, row and column,
-        which are products with one nonzero term (exact, as entry's copies are): only
-        those are formed, not N² covariances.
+        none), so every entry of x_ji and P_ji is one entry of x_i or P_i times 1, ±1
+        or 0: all N² components are gathered at once (:mod:`~kf_train.filters.rail_mixing`,
+        exact, as entry's copies are).
         """
-        count, n = means.shape
-        rows, squares, noise = self._entry
-        columns = weights.T                                    # [j, i] = ω_ij
-        diagonal = slice(None, None, count + 1)               # the pairs j = i of [j, i]
-        xs = np.empty((count, count, n))
-        xs[:] = means
-        xs[:, :, 3] = rows.dot(means.T)                        # ℓ_ji = T_j's row ℓ · x_i
-        xs.reshape(count * count, n)[diagonal, 3] = means[:, 3]
-        x0 = np.matmul(columns[:, None, :], xs).reshape(count, n)          # Σ_i ω_ij x_ji
-        flat = covs.reshape(count, n * n)
-        ell = np.dot(rows, covs)                               # row ℓ of T_j P_i (N, N, n)
-        ell[:, :, 3] = squares.dot(flat[:, ::n + 1].T) + noise  # Var(A or B) + w_j
-        ell.reshape(count * count, n)[diagonal] = covs[:, 3, :]
-        spread = columns.dot(flat).reshape(count, n, n)        # Σ_i ω_ij P_i
-        row = np.matmul(columns[:, None, :], ell).reshape(count, n)       # … its row ℓ
-        spread[:, 3, :] = row
-        spread[:, :, 3] = row
-        d = xs - x0[:, None, :]                                # d_ji = x_ji - x0_j
-        P0 = spread + np.matmul((columns[:, :, None] * d).swapaxes(1, 2), d)
-        return x0, imm_stack.symmetrised(P0)
+        return self._entry.mix(weights.T, means, covs)
 
     def entry(self, j: int, x: np.ndarray, P: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """
@@ -422,23 +404,17 @@ class RailModel(IMM):
         return self._stops.hold(start, predicted, dt_s)
 
 
-def _entry_transformation(params: RailModelParameters):
+def _entry_transformation(params: RailModelParameters) -> EntryGather:
     """
-    Return (rows, rows², W (4, 1)) of :meth:`RailModel.entry` for the four regimes.
+    Return the gather tables of :meth:`RailModel.entry` for the four regimes.
 
     Entering regime j is x' = T_j x + w, w ~ N(0, W_j): T_j is the identity with ℓ's
-    row replaced by ``rows[j]``, A's (accelerate), -B's (brake) or zeros (cruise,
-    stand); W_j = ``noise[j]`` is ℓ's new variance (plateau_std², cruise_std² or 0).
+    row replaced by A's (accelerate), -B's (brake) or zeros (cruise, stand); W_j is
+    ℓ's new variance (plateau_std², cruise_std² or 0).
     """
-    rows = np.zeros((4, DIM_X))
-    rows[ACCELERATE, 4] = 1.0                                  # ℓ = A + w
-    rows[BRAKE, 5] = -1.0                                      # ℓ = -B + w
-    noise = np.array([[0.0], [params.plateau_std_mps2 ** 2], [params.cruise_std_mps2 ** 2],
-                      [params.plateau_std_mps2 ** 2]])
-    arrays = (rows, rows * rows, noise)
-    for array in arrays:
-        array.flags.writeable = False
-    return arrays
+    plateau, cruise = params.plateau_std_mps2 ** 2, params.cruise_std_mps2 ** 2
+    return EntryGather(sources=(None, 4, None, 5), factors=(0.0, 1.0, 0.0, -1.0),
+                       noises=(0.0, plateau, cruise, plateau), dim_x=DIM_X, ell=3)
 
 
 def make_rail_filter(position_m: float, parameters: RailModelParameters = None,
