@@ -390,10 +390,12 @@ class RailModel(IMM):
         means, covs = imm_stack.predict(state.means, state.covariances, *self._matrices(dt_s),
                                         final=False)
         starts = state.means[:, :4].tolist()
+        stops = self._stops
         for j in (ACCELERATE, CRUISE, BRAKE):
-            held = self._stops.hold(starts[j], means[j], dt_s)
-            if held is not means[j]:
-                means[j] = held
+            if stops.may_stop(starts[j], dt_s):
+                held = stops.hold(starts[j], means[j], dt_s)
+                if held is not means[j]:
+                    means[j] = held
         x, P = imm_stack.combine(means, covs, state.probabilities)
         imm_stack.check_finite(x, P, 'prediction')
         return x, P

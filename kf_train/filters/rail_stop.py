@@ -62,6 +62,19 @@ class StopFinder:
             self._bounds[horizon_s] = bound
         return bound
 
+    def may_stop(self, start, horizon_s: float) -> bool:
+        """
+        Return False when the mean path from ``start`` surely never stops within horizon_s.
+
+        ``start`` as for :meth:`hold`. The quick bound of :meth:`hold` alone, on plain
+        floats: when it is False, :meth:`hold` returns its ``predicted`` unchanged.
+        """
+        _, v, a, command = start[:4]
+        if v < 0.0:
+            return True
+        phi1, phi2 = self._horizon_phi(horizon_s)
+        return not v + self.tau_s * (phi1 * min(a, 0.0) + phi2 * min(command, 0.0)) > 0.0
+
     def hold(self, start, predicted: np.ndarray, horizon_s: float) -> np.ndarray:
         """
         Return the predicted mean with the train held where its mean velocity reaches 0.
