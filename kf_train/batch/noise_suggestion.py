@@ -23,6 +23,7 @@ import collections
 import math
 from typing import NamedTuple, Optional, Sequence
 
+from kf_train.batch import noise_grid
 from kf_train.batch.noise_likelihood import (
     is_constant_velocity, make_segment, NoiseSetting, TuningProblem)
 from kf_train.filters import chi2_quantile, NS_PER_S
@@ -106,7 +107,10 @@ class RunningNoiseEstimate:
         self._rows = collections.deque(maxlen=window)
         self._previous: Optional[float] = None   # log q of the last suggestion
         self.evaluations = 0
-        """Likelihood evaluations so far (each one filter run over the window)."""
+        """Likelihood evaluations so far (each one q's filter run over the window)."""
+        self.batched = noise_grid.batched(preset)
+        """Search q on grids, many q per filter run (:mod:`~kf_train.batch.noise_grid`);
+        False: one q at a time (golden section and bisection), as for other presets."""
 
     def __len__(self) -> int:
         """Return how many measurements the window holds."""
@@ -159,6 +163,10 @@ class RunningNoiseEstimate:
         R = variances[0]
         # q from far below what the window can detect (q·T³ ≪ R) to far above R/dt³
         low, high = math.log(R / span ** 3 * 1e-4), math.log(R / dt ** 3 * 1e4)
+        if self.batched:
+            found = self._grid_suggest(problem, R, low, high)
+            if found is not None:
+                return NoiseSuggestion(*found, problem.rows)
         grid = np.arange(low, high + _DECADE, _DECADE)
         if self._previous is not None:       # warm start: the decades around the last one
             near = grid[np.abs(grid - self._previous) <= 3.0 * _DECADE]
@@ -173,6 +181,20 @@ class RunningNoiseEstimate:
         v_hat = _golden_section(nll, a, b, 1e-2)   # q to 1 %: plenty for advice
         self._previous = v_hat
         return self._interval(nll, v_hat, low, high, problem.rows)
+
+    def _grid_suggest(self, problem: TuningProblem, R: float, low: float, high: float):
+        """Return (q, low, high) searched on grids of q at once, or None (see noise_grid)."""
+        segment = problem.segments[0]
+        likelihood = noise_grid.WindowLikelihood(
+            self.preset, segment.t_s, segment.z[:, 0], segment.u, R,
+            self.first_velocity_std_mps)
+
+        def nll(v: np.ndarray) -> np.ndarray:
+            self.evaluations += v.size
+            return -likelihood.log_likelihoods(np.exp(v))
+        threshold = 0.5 * chi2_quantile(1.0 - 2.0 * (1.0 - self.confidence), 1)
+        return noise_grid.grid_search(nll, low, high, threshold,
+                                      math.sqrt(chi2_quantile(self.confidence, 1)))
 
     def _interval(self, nll, v_hat: float, low: float, high: float,
                   count: int) -> NoiseSuggestion:
