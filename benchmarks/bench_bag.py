@@ -40,7 +40,8 @@ from bench_scale import _kf_train, _measured  # noqa: E402
 
 RATE_HZ = 10.0
 SEED_000 = ('preset:=train', 'initialization:=prior', 'gate_probability:=1.0')
-PARAMETER_SETS = (('default parameters', ()), ('seed 000 parameters', SEED_000))
+PARAMETER_SETS = (('default parameters (rail IMM)', ()),
+                  ('seed 000 parameters (train KF, suggested q on)', SEED_000))
 GOAL_RTF = 1000.0
 GOAL_S = 10.0
 

@@ -12,9 +12,12 @@ tracks a q that changes (a train that starts braking hard) with a delay of about
 window.
 
 It is pure (numpy only, no scipy, no ROS): the node calls :meth:`add` per fused
-measurement and :meth:`suggest` at its diagnostics period. The 1-D search is a grid
-of decades of log q, refined by golden-section search; written here because the
-nodes must not import scipy. The interval is the Wald interval of log q from the
+measurement and :meth:`suggest` at its diagnostics period. For the presets measuring
+the position alone the likelihood runs for a whole grid of q at once
+(:mod:`kf_train.batch.noise_grid`: a quarter-decade grid, then fine grids of spacing
+1e-2 in log q around the minimum and the bound); otherwise the 1-D search is a grid
+of decades of log q, refined by golden-section search. Both are written here because
+the nodes must not import scipy. The interval is the Wald interval of log q from the
 curvature (two more evaluations), or, when the window cannot tell q from 0, [0, the
 likelihood-ratio bound] (½χ²₀ + ½χ²₁ at the boundary, as ``kf-train tune`` does).
 """

@@ -8,9 +8,10 @@ in a :class:`kf_train.batch.RunningNoiseEstimate` (maximum likelihood of q on th
 window, with the node's own linear filter and the R the node uses: the
 ``measurement_variance`` parameter, else the newest message's variance), and
 recomputes the suggestion only when a window's worth of new measurements came in: a
-suggestion costs 25–40 filter runs over the window (40–130 ms for 300 rows, mostly
-per-run overhead), so at 10 Hz with the default window it is recomputed every 30 s (on
-the window then in, which the previous suggestion did not see), and each fused
+suggestion costs two runs of a filter batched over a few hundred q values
+(:mod:`kf_train.batch.noise_grid`; 7-20 ms for 300 rows, where 25-40 runs of one q
+each took 40-60 ms), so at 10 Hz with the default window it is recomputed every 30 s
+(on the window then in, which the previous suggestion did not see), and each fused
 measurement costs only an append.
 
 The suggestion exists only where q does: presets whose states are [position,
