@@ -176,7 +176,8 @@ def update(means: np.ndarray, covariances: np.ndarray, z: float, H: np.ndarray,
     # Joseph form, P = (I - K H) P⁻ (I - K H)ᵀ + K R Kᵀ: stays symmetric and positive
     # semi-definite even when K is not exactly optimal.
     P = np.matmul(np.matmul(I_KH, covariances), I_KH.swapaxes(1, 2))
-    P += (K * R[:, None])[:, :, None] * K[:, None, :]
+    # K R Kᵀ as a stack of outer products (one product per entry, as the broadcast's)
+    P += np.matmul((K * R[:, None])[:, :, None], K[:, None, :])
     P = symmetrised(P)
     check_finite(x, P, 'update')
     logs = []
