@@ -20,7 +20,9 @@ UNIT_ROUNDOFF = 2.0 ** -53
 # (s, K, x + K y: 4; I - K H and the Joseph products (I - KH) P (I - KH)ᵀ + K R Kᵀ:
 # 1 + 12 + 3; symmetrising: 1), the log-domain probabilities (log, exp, a 4-term sum: 6)
 # and the outputs' mixture moments (4 + 6): c = 73. Each implementation is within c·u of
-# exact arithmetic, so the two are within 2c·u of each other after one step.
+# exact arithmetic, so the two are within 2c·u of each other after one step. (The
+# stacked mixing gathers the entering components exactly and leaves P0 unsymmetrised,
+# F P0 Fᵀ + Q being symmetrised anyway: one rounding fewer, so c bounds it still.)
 PER_STEP = 2 * 73 * UNIT_ROUNDOFF
 # Sensitivity of the compared outputs to a position error, per metre. The dominant
 # error is positional: the innovation y = z - x cancels two numbers of size X (the
