@@ -2,7 +2,7 @@
 What the suggested q in ``/diagnostics`` costs the estimator node, per measurement.
 
 The node's session (:class:`kf_train.ros.session.EstimatorSession`, what its callbacks
-run) is fed a random-force train at 10 Hz (``rows`` measurements, q = 2 while the node
+run; preset train, gate off) is fed a random-force train at 10 Hz (``rows`` measurements, q = 2 while the node
 runs q = 0, so the suggestion is shown), once with ``noise_suggestion_window:=0`` (off)
 and once with each window, with a diagnostics status every 10 measurements (1 s, the
 node's default period). It prints, per window:
@@ -34,8 +34,10 @@ DIAGNOSTICS_EVERY = 10
 def run(window: int, stamps, z):
     """Return (s in measurement callbacks, s per status list, refresh count) of one run."""
     now = [EPOCH_NS]
+    # The train's KF (the default preset, rail, has no q to suggest), gate off.
     session = EstimatorSession(
-        load_estimator_config([], [f'noise_suggestion_window:={window}']),
+        load_estimator_config([], ['preset:=train', 'gate_probability:=1.0',
+                                   f'noise_suggestion_window:={window}']),
         lambda: now[0] / NS)
     measuring, statuses = 0.0, []
     for k, (stamp_ns, value) in enumerate(zip(stamps, z)):
