@@ -2,8 +2,9 @@
 What the suggested q in ``/diagnostics`` costs the estimator node, per measurement.
 
 The node's session (:class:`kf_train.ros.session.EstimatorSession`, what its callbacks
-run; preset train, gate off) is fed a random-force train at 10 Hz (``rows`` measurements, q = 2 while the node
-runs q = 0, so the suggestion is shown), once with ``noise_suggestion_window:=0`` (off)
+run; preset train, gate off) is fed a random-force train at 10 Hz (``rows``
+measurements, q = 2 while the node runs q = 0, so the suggestion is shown), once with
+``noise_suggestion_window:=0`` (off)
 and once with each window, with a diagnostics status every 10 measurements (1 s, the
 node's default period). It prints, per window:
 
