@@ -87,7 +87,7 @@ class WindowLikelihood:
         return -0.5 * (self.rows * LOG_2PI + total)
 
 
-def refined_minimum(values: np.ndarray) -> int:
+def smallest_finite(values: np.ndarray) -> int:
     """Return the index of the smallest finite value (the first of equals)."""
     return int(np.argmin(np.where(np.isfinite(values), values, math.inf)))
 
@@ -130,7 +130,7 @@ def grid_search(nll, low: float, high: float, threshold: float, z: float):
     """
     coarse = np.linspace(low, high, max(int(math.ceil((high - low) / COARSE)), 2) + 1)
     values = nll(coarse)
-    best = refined_minimum(values)
+    best = smallest_finite(values)
     last = coarse.size - 1
     around = _fine(coarse[max(best - 1, 0)], coarse[min(best + 1, last)])
     rises = np.flatnonzero(values[best:] - values[best] > threshold)
@@ -140,7 +140,7 @@ def grid_search(nll, low: float, high: float, threshold: float, z: float):
         upper = _fine(coarse[max(c - 2, best)], coarse[c])
     fine = nll(around if upper is None else np.concatenate((around, upper)))
     inner = fine[:around.size]
-    j = refined_minimum(inner)
+    j = smallest_finite(inner)
     v_hat, f_hat = float(around[j]), float(inner[j])
     drop_at_zero = float(values[0]) - f_hat
     if drop_at_zero <= threshold:                     # q = 0 not rejected: [0, LR bound]
