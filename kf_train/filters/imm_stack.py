@@ -216,8 +216,10 @@ def mixture_innovation(prior: np.ndarray, means: np.ndarray, result: StackUpdate
     for c_j, s_j, d_j in zip(c, s_modes, d):
         S += c_j * (s_j + d_j * d_j)                                 # Σ c̄_j (s_j + d_j²)
     x_bar = prior.dot(means)
-    Pxz = prior.dot(result.gains * result.variances[:, None] -
-                    (means - x_bar) * np.array(d)[:, None])
+    # P_xz = Σ c̄_j s_j K_j - Σ c̄_j d_j (x_j - x̄): two weighted sums of rows
+    weights = np.array([[c_j * s_j for c_j, s_j in zip(c, s_modes)],
+                        [c_j * d_j for c_j, d_j in zip(c, d)]])
+    Pxz = weights[0].dot(result.gains) - weights[1].dot(means - x_bar)
     nis = y * (y / S)                                                # yᵀ S⁻¹ y
     return y, S, nis, Pxz / S
 
