@@ -17,7 +17,7 @@ past the segment's last truth are left out).
 """
 
 import math
-from typing import Dict, NamedTuple, Optional
+from typing import Dict, NamedTuple, Optional, Tuple
 
 from kf_train.batch.noise_likelihood import Innovations, NoiseSetting, TuningProblem
 from kf_train.filters import chi2_mean_bounds, chi2_quantile
@@ -94,6 +94,21 @@ class PredictionReport(NamedTuple):
     """Root-mean-square error per state with truth."""
 
 
+def errors_against_truth(t_s: np.ndarray, truth: np.ndarray, target_s: np.ndarray,
+                         predicted: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return (predicted − truth, the rows compared): truth interpolated at ``target_s``.
+
+    Only targets inside the span of the known (finite) truth are compared.
+    """
+    known = np.isfinite(truth)
+    t_known = t_s[known]
+    if t_known.size < 1:
+        return np.empty(0), np.zeros(target_s.shape, dtype=bool)
+    inside = (target_s >= t_known[0]) & (target_s <= t_known[-1])
+    return predicted[inside] - np.interp(target_s[inside], t_known, truth[known]), inside
+
+
 def prediction_errors(problem: TuningProblem, setting: NoiseSetting,
                       horizon_s: float) -> Optional[PredictionReport]:
     """
@@ -112,13 +127,8 @@ def prediction_errors(problem: TuningProblem, setting: NoiseSetting,
         result, first = run
         target = segment.t_s[first:] + horizon_s
         for i in range(len(names)):
-            known = np.isfinite(segment.truth[:, i])
-            t_known = segment.t_s[known]
-            if t_known.size < 1:
-                continue
-            inside = (target >= t_known[0]) & (target <= t_known[-1])
-            truth = np.interp(target[inside], t_known, segment.truth[known, i])
-            error = result.predicted_x[inside, i] - truth
+            error, _ = errors_against_truth(segment.t_s, segment.truth[:, i], target,
+                                            result.predicted_x[:, i])
             squares[i] += float(np.sum(error * error))
             counts[i] += int(error.size)
     if not np.any(counts):

@@ -21,6 +21,7 @@ returns what ``kf-train tune --preset rail`` prints before and after tuning:
 import math
 from typing import NamedTuple, Optional, Sequence
 
+from kf_train.batch.noise_checks import errors_against_truth
 from kf_train.batch.noise_likelihood import Innovations, Segment
 from kf_train.batch.rail_series import RailSeriesFilter
 from kf_train.presets import RailPreset
@@ -81,13 +82,8 @@ def rail_check(preset: RailPreset, segments: Sequence[Segment], variance_m2: flo
             continue
         target = segment.t_s + horizon_s
         for i in range(2):
-            known = np.isfinite(segment.truth[:, i])
-            t_known = segment.t_s[known]
-            if t_known.size < 1:
-                continue
-            inside = (target >= t_known[0]) & (target <= t_known[-1])
-            truth = np.interp(target[inside], t_known, segment.truth[known, i])
-            error = ahead_x[inside, i] - truth
+            error, inside = errors_against_truth(segment.t_s, segment.truth[:, i], target,
+                                                 ahead_x[:, i])
             squares[i] += float(np.sum(error * error))
             counts[i] += int(error.size)
             if i == 0:

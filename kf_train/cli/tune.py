@@ -53,7 +53,7 @@ from kf_train.batch import (
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
 from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
-from kf_train.cli.tune_rail import add_rail_arguments, check_rail_args, rail_preset_of, run_rail
+from kf_train.cli.tune_rail import add_rail_arguments, check_rail_args, rail_preset_of, tune_rail
 from kf_train.presets import (
     available_presets, load_preset, load_preset_file, Preset, preset_from_mapping)
 import numpy as np
@@ -351,6 +351,35 @@ def _setup(args):
     return spec, preset, problem, parameterisation, before, notes
 
 
+def _tune_linear(args) -> str:
+    """Tune a linear preset on ``args.input``, write the files; return the report."""
+    for target in (args.output, args.preset_output):
+        if target not in (None, '-'):
+            check_file_target(target)       # before the work, not after
+    spec, preset, problem, parameterisation, before, notes = _setup(args)
+    horizon_s = args.horizon or preset.horizon_s or DEFAULT_HORIZON_S
+    report = run_tuning(problem, parameterisation, horizon_s, args.confidence, before)
+    setting = report.result.setting
+    # R the messages carry stays theirs (measurement_variance 0: the message's).
+    r_given = args.fix_r is not None or bool(parameterisation.measured)
+    params = ros_parameters(spec, preset, problem, setting, r_given)
+    comments = [f'Written by kf-train tune on {datetime.date.today().isoformat()} from '
+                f'{args.input} ({report.result.rows} innovations), preset {preset.name}.']
+    comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} '
+                 f'interval [{_number(e.low)}, {_number(e.high)}]'
+                 for e in report.result.estimates]
+    comments += [f'input: {line}' for line in notes]
+    comments.append(f'Use: estimator --ros-args --params-file {os.path.basename(args.output)}'
+                    f' (or kf-train replay BAG --params-file {os.path.basename(args.output)})')
+    head, _, rest = format_report(report, problem, args.confidence).partition('\n')
+    text = '\n'.join([head] + [f'input: {line}' for line in notes] + [rest])
+    if args.preset_output:
+        write_atomic(args.preset_output, [tuned_preset_yaml(preset, setting)])
+    write_atomic(args.output, [params_yaml(params, comments)])
+    return text + f'\nwrote {args.output}' + (
+        f' and {args.preset_output}' if args.preset_output else '')
+
+
 def main(argv: Optional[List[str]] = None) -> int:
     """Run ``kf-train tune``; return the exit code."""
     parser = _parser()
@@ -358,39 +387,14 @@ def main(argv: Optional[List[str]] = None) -> int:
     _check_args(parser, args)
     try:
         rail = rail_preset_of(args)
-    except ValueError as error:
-        print(f'kf-train tune: error: {" ".join(str(error).split())}', file=sys.stderr)
-        return EXIT_BAD_INPUT
-    if rail is not None:
-        noises = check_rail_args(parser, args)
-        return run_rail(args, rail, noises, os.path.abspath(args.config) if args.config
-                        else 'rail')
-    if args.rail_noises is not None:
-        parser.error('--rail-noises applies to the rail preset only')
-    try:
-        for target in (args.output, args.preset_output):
-            if target not in (None, '-'):
-                check_file_target(target)       # before the work, not after
-        spec, preset, problem, parameterisation, before, notes = _setup(args)
-        horizon_s = args.horizon or preset.horizon_s or DEFAULT_HORIZON_S
-        report = run_tuning(problem, parameterisation, horizon_s, args.confidence, before)
-        setting = report.result.setting
-        # R the messages carry stays theirs (measurement_variance 0: the message's).
-        r_given = args.fix_r is not None or bool(parameterisation.measured)
-        params = ros_parameters(spec, preset, problem, setting, r_given)
-        comments = [f'Written by kf-train tune on {datetime.date.today().isoformat()} from '
-                    f'{args.input} ({report.result.rows} innovations), preset {preset.name}.']
-        comments += [f'{e.parameter.name} = {_number(e.value)}, {args.confidence:.0%} '
-                     f'interval [{_number(e.low)}, {_number(e.high)}]'
-                     for e in report.result.estimates]
-        comments += [f'input: {line}' for line in notes]
-        comments.append(f'Use: estimator --ros-args --params-file {os.path.basename(args.output)}'
-                        f' (or kf-train replay BAG --params-file {os.path.basename(args.output)})')
-        head, _, rest = format_report(report, problem, args.confidence).partition('\n')
-        text = '\n'.join([head] + [f'input: {line}' for line in notes] + [rest])
-        if args.preset_output:
-            write_atomic(args.preset_output, [tuned_preset_yaml(preset, setting)])
-        write_atomic(args.output, [params_yaml(params, comments)])
+        if rail is not None:
+            noises = check_rail_args(parser, args)
+            text = tune_rail(args, rail, noises, os.path.abspath(args.config) if args.config
+                             else 'rail')
+        elif args.rail_noises is not None:
+            parser.error('--rail-noises applies to the rail preset only')
+        else:
+            text = _tune_linear(args)
     except ImportError as error:
         print(f'kf-train tune: error: needs scipy ({error}); install it with '
               "'pip install scipy'", file=sys.stderr)
@@ -398,10 +402,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     except ValueError as error:
         print(f'kf-train tune: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT
-    stream = sys.stderr if args.output == '-' else sys.stdout
-    print(text, file=stream)
-    print(f'wrote {args.output}' + (f' and {args.preset_output}' if args.preset_output
-                                    else ''), file=stream)
+    print(text, file=sys.stderr if args.output == '-' else sys.stdout)
     return EXIT_OK
 
 

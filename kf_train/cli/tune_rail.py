@@ -22,7 +22,6 @@ The inputs and their options are ``kf-train tune``'s (:mod:`kf_train.cli.tune`).
 import datetime
 import math
 import os
-import sys
 from typing import List, Optional
 
 from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
@@ -32,8 +31,6 @@ from kf_train.cli.tune_inputs import reader_for, TopicOptions
 from kf_train.presets import rail_preset_from_mapping, RailPreset
 import numpy as np
 
-EXIT_OK = 0
-EXIT_BAD_INPUT = 1
 CHECK_CONFIDENCE = 0.99
 DEFAULT_NOISES = ('acceleration_noise', 'command_noise')
 TUNABLE_NOISES = ('acceleration_noise', 'command_noise', 'capability_noise')
@@ -197,7 +194,7 @@ def _comments(args, fit: RailFit, rows: int, spec_label: str, preset_output: str
     return comments
 
 
-def _tune(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
+def tune_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
     """Estimate, check, write the files; return the report (ValueError for bad input)."""
     from kf_train.cli.tune import params_yaml
     if args.output == '-' and not args.preset_output:
@@ -238,21 +235,6 @@ def _tune(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
     comments = _comments(args, fit, rows, spec_label, preset_output, notes)
     write_atomic(args.output, [params_yaml(params, comments)])
     return text + f'\nwrote {args.output} and {preset_output}'
-
-
-def run_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> int:
-    """Tune the rail preset ``preset`` on ``args.input``, print the report; return the code."""
-    try:
-        text = _tune(args, preset, noises, spec_label)
-    except ImportError as error:
-        print(f'kf-train tune: error: needs scipy ({error}); install it with '
-              "'pip install scipy'", file=sys.stderr)
-        return EXIT_BAD_INPUT
-    except ValueError as error:
-        print(f'kf-train tune: error: {" ".join(str(error).split())}', file=sys.stderr)
-        return EXIT_BAD_INPUT
-    print(text, file=sys.stderr if args.output == '-' else sys.stdout)
-    return EXIT_OK
 
 
 def rail_preset_of(args) -> Optional[RailPreset]:
