@@ -215,10 +215,6 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
         b = [entry_add(e, f) for e, f in zip(b, soa_mv(I_KH, Bu))]  # ... + (I − K H) B u
     b = [np.broadcast_to(e, (N,)) if is_const(e) else e for e in b]
     x = affine_recursion(A, b, x0)
-    x_prev = [_shift(np.ascontiguousarray(x[:, i]), x0[i], N) for i in range(n)]
-    x_prior = soa_mv(F, x_prev)                        # x⁻ = F x + B u
-    if Bu is not None:
-        x_prior = [entry_add(e, f) for e, f in zip(x_prior, Bu)]
 
     pred_x = pred_P = None
     if horizon_s:
@@ -229,6 +225,10 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
     if not priors:
         return SeriesResult(t_s, x, soa_to_stack(P, N), None, None, None, horizon_s, pred_x,
                             pred_P)
+    x_prev = [_shift(np.ascontiguousarray(x[:, i]), x0[i], N) for i in range(n)]
+    x_prior = soa_mv(F, x_prev)                        # x⁻ = F x + B u
+    if Bu is not None:
+        x_prior = [entry_add(e, f) for e, f in zip(x_prior, Bu)]
     return SeriesResult(t_s, x, soa_to_stack(P, N), soa_vector_to_stack(x_prior, N),
                         soa_to_stack(P_prior, N), soa_to_stack(F, N), horizon_s, pred_x,
                         pred_P)
