@@ -200,8 +200,8 @@ def repr_strings(values: np.ndarray, name: str = ''):
     * below 1e-5 polars writes the exponent form with a one-digit exponent, 1.5e-7,
       where repr pads it, 1.5e-07: polars' text with 'e-' made 'e-0' (every value of
       this part has a one-digit negative exponent, and no other 'e-');
-    * from 1e-5 it writes 0.0000123 where repr writes 1.23e-05: those values are
-      written in polars' scientific notation (repr's but for the padding) and padded.
+    * from 1e-5 it writes 0.0000123 where repr writes 1.23e-05: the digits after
+      '0.0000' are repr's mantissa (:func:`_scientific_e05`).
 
     Non-finite values, rare, are written by repr. A column of the train preset's
     variances lies below 1e-5 on most rows of a long log: that part costs a cast and a
@@ -224,13 +224,34 @@ def repr_strings(values: np.ndarray, name: str = ''):
         text = text.scatter(part, text.gather(part).str.replace('e-', 'e-0', literal=True))
     high = np.flatnonzero(odd & ~low)
     if high.size:
-        blob = pl.DataFrame({name: values[high]}).write_csv(
-            include_header=False, float_scientific=True).replace('e-', 'e-0')
-        text = text.scatter(high, pl.Series(name, [blob]).str.split('\n').explode().head(
-            high.size))
+        text = text.scatter(high, _scientific_e05(values[high], name))
     bad = np.flatnonzero(~finite)
     if bad.size:
         text = text.scatter(bad, [repr(v) for v in values[bad].tolist()])
+    return text
+
+
+def _scientific_e05(values: np.ndarray, name: str):
+    """
+    Return repr's text of doubles with 1e-5 <= |v| < 1e-4 (d.ddde-05), from polars' digits.
+
+    polars writes |v| there as 0.0000ddd (shortest round-trip digits, repr's): the
+    digits after the prefix '0.0000' are repr's mantissa, d.dd, exponent -05 (a single
+    digit: d alone). String slicing, ≈3x faster than re-writing the values in polars'
+    scientific notation and splitting the text.
+    """
+    pl = _pl()
+    digits = pl.Series('d', np.abs(values)).cast(pl.String).str.slice(6)
+    column = pl.col('d')
+    text = pl.DataFrame([digits]).select(pl.concat_str(
+        [column.str.slice(0, 1), pl.lit('.'), column.str.slice(1), pl.lit('e-05')]).alias(
+            name)).to_series()
+    single = np.flatnonzero(digits.str.len_bytes().to_numpy() == 1)
+    if single.size:                                   # 1e-05, 2e-05, ...: no point
+        text = text.scatter(single, digits.gather(single) + 'e-05')
+    negative = np.flatnonzero(values < 0.0)
+    if negative.size:
+        text = text.scatter(negative, '-' + text.gather(negative))
     return text
 
 
