@@ -246,7 +246,9 @@ def _estimates(objective, vector, H, ll_hat, bounds, confidence):
     parameters = objective.parameterisation.parameters
     threshold = _boundary_threshold(confidence)
     diagonal = np.diag(H) / objective.rows
-    scale = np.where(diagonal > 0.0, 1.0 / np.sqrt(np.abs(diagonal)), 1.0)
+    positive = diagonal > 0.0       # a flat direction (0) keeps the unit scale
+    scale = np.ones_like(diagonal)
+    scale[positive] = 1.0 / np.sqrt(diagonal[positive])
     # Only a density the node can run at 0 (q) has a boundary worth testing; R → 0
     # (noise-free measurements) never fits data that have noise.
     drops = {i: _profile_drop(objective, vector, ll_hat, i, bounds[i][0], bounds, scale)
