@@ -283,8 +283,19 @@ class LinearStack:
         if kept is not None and all(a is b for a, b in zip(kept[3], sources)):
             return kept[:3]
         count, n = len(self.modes), self.dim_x
-        F = np.array([as_matrix('F', value, n, n) for value in sources[:count]])
-        Q = np.array([as_covariance('Q', value, n) for value in sources[count:]])
+        # Modes often share one matrix object (the rail model's moving regimes): it is
+        # checked once. A new dt (a stream with jittered stamps) pays these checks.
+        checked = {}
+
+        def check(kind, value, checker):
+            key = (kind, id(value))
+            if key not in checked:
+                checked[key] = checker(value)
+            return checked[key]
+        F = np.array([check('F', value, lambda v: as_matrix('F', v, n, n))
+                      for value in sources[:count]])
+        Q = np.array([check('Q', value, lambda v: as_covariance('Q', v, n))
+                      for value in sources[count:]])
         F_transposed = F.swapaxes(1, 2).copy()
         if all(frozen(value) for value in sources):
             for array in (F, Q, F_transposed):
