@@ -12,7 +12,7 @@ import statistics
 import subprocess
 import sys
 import time
-from typing import List, Sequence, Tuple
+from typing import List, Optional, Sequence, Tuple
 
 from bench_children import Child, Domains, helper, HERE, node_command
 from bench_common import NS_PER_S, Row, verdict
@@ -30,7 +30,8 @@ LIVE_QOS_DEPTH = 1000
 
 
 def _live_trial(domains: Domains, target: str, executor: str, rate_hz: int,
-                duration_s: float, signum: int, qos_depth: int = LIVE_QOS_DEPTH) -> dict:
+                duration_s: float, signum: int, qos_depth: int = LIVE_QOS_DEPTH,
+                preset: Optional[str] = None) -> dict:
     """
     Run one paced-publisher trial against the estimator or the echo node.
 
@@ -46,6 +47,8 @@ def _live_trial(domains: Domains, target: str, executor: str, rate_hz: int,
                 '--executor', executor, '--ros-args', '-p',
                 f'diagnostics_period_s:={DIAGNOSTICS_PERIOD_S}', '-p',
                 f'qos_depth:={qos_depth}', '--log-level', 'error']
+            if preset is not None:
+                command[-2:-2] = ['-p', f'preset:={preset}']
             probe = helper('probe', 'estimate', 'odometry', '--diagnostics')
         else:
             command = helper('echo', executor, qos_depth)
@@ -86,17 +89,24 @@ def row_live(quick: bool, rates: Sequence[int], qos_depth: int = LIVE_QOS_DEPTH)
     rows = []
     signals = (signal.SIGINT, signal.SIGTERM)
     for i, rate in enumerate(rates):
-        trials = [('echo', 'events'), ('estimator', 'single_threaded'),
-                  ('estimator', 'events')]
+        # The transport targets are the train KF's (a closed form: what is measured is
+        # the node's plumbing); the default rail IMM costs ~0.1-0.5 ms per fix (more
+        # with jittered stamps: docs/rail.md) and is shown once, at the lowest rate.
+        trials = [('echo', 'events', None), ('estimator', 'single_threaded', 'train'),
+                  ('estimator', 'events', 'train')]
+        if i == 0:
+            trials.append(('estimator', 'events', None))
         echo_median = None
-        for j, (target, executor) in enumerate(trials):
+        for j, (target, executor, preset) in enumerate(trials):
             signum = signals[(i + j) % 2]
+            name = target if target == 'echo' else (
+                f'estimator (preset {preset})' if preset else 'estimator (defaults: rail IMM)')
             try:
                 trial = _live_trial(domains, target, executor, rate, duration_s, signum,
-                                    qos_depth)
+                                    qos_depth, preset)
             except (RuntimeError, TimeoutError, subprocess.TimeoutExpired) as error:
                 reason = ' '.join(str(error).split())[:300]
-                rows.append(('4', f'live, {rate:,} Hz', f'{target}, {executor} executor, '
+                rows.append(('4', f'live, {rate:,} Hz', f'{name}, {executor} executor, '
                              f'best effort depth {qos_depth:,}', f'failed: {reason}', '-', '-'))
                 continue
             published = trial['published']
@@ -128,13 +138,15 @@ def row_live(quick: bool, rates: Sequence[int], qos_depth: int = LIVE_QOS_DEPTH)
             else:
                 ratio = '-' if echo_median is None else f'{median / echo_median:.2f}× echo'
                 goal = f'clean exit: {verdict(clean)}'
-                if executor == 'events' and rate >= 5000:
+                if preset is None:
+                    pass                # the default's own cost: no transport target
+                elif executor == 'events' and rate >= 5000:
                     lossless = delivered >= published and processed + rejected >= published
                     goal = f'lossless: {verdict(lossless)}; ' + goal
-                if executor == 'events' and echo_median is not None:
+                if executor == 'events' and echo_median is not None and preset is not None:
                     goal = (f'median ≤1.5× echo: {verdict(median <= 1.5 * echo_median)}; '
                             + goal)
-            rows.append(('4', f'live, {rate:,} Hz', f'{target}, {executor} executor, '
+            rows.append(('4', f'live, {rate:,} Hz', f'{name}, {executor} executor, '
                          f'best effort depth {qos_depth:,}', result, ratio, goal))
     return rows
 
