@@ -42,9 +42,11 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     rows = {line.split('|')[1].strip() for line in table[1:]}
     assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9', '10a', '10b'}
     assert not [line for line in table if 'failed:' in line], table
-    # Every live trial got through and exited; every start-up was measured.
+    # Every live trial got through and exited (the echo, the train KF on both
+    # executors, the rail default at the lowest rate); every start-up was measured.
     live = [line for line in table if line.startswith('| 4 |')]
-    assert len(live) == 3 and all('latency median' in line for line in live), live
+    assert len(live) == 4 and all('latency median' in line for line in live), live
+    assert sum('(defaults: rail IMM)' in line for line in live) == 1, live
     assert all('exit 0' in line for line in live), live
     startup = [line for line in table if line.startswith('| 5 |')]
     assert len(startup) == 4 and all('peak RSS' in line for line in startup), startup
