@@ -42,6 +42,7 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     rows = {line.split('|')[1].strip() for line in table[1:]}
     assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9', '10a', '10b'}
     assert not [line for line in table if 'failed:' in line], table
+    assert 'NOT EXACT' not in out, [line for line in table if 'NOT EXACT' in line]
     # Every live trial got through and exited (the echo, the train KF on both
     # executors, the rail default at the lowest rate); every start-up was measured.
     live = [line for line in table if line.startswith('| 4 |')]
