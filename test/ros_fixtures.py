@@ -31,3 +31,10 @@ def executor(ros_context):
     executor.shutdown()
     for node in nodes:
         node.destroy_node()
+
+
+@pytest.fixture(autouse=True)
+def owned_nodes():
+    """Destroy the nodes the test registered with ros_helpers.own_node, afterwards."""
+    yield
+    ros_helpers.destroy_owned_nodes()

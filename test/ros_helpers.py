@@ -17,6 +17,24 @@ _counter = itertools.count()
 _base = (os.getpid() * 7919 + int(time.time())) % _DOMAIN_COUNT
 
 
+# Nodes a test created outside an executor fixture; destroy_owned_nodes() (an autouse
+# fixture of ros_fixtures.py) destroys them after each test, so no DDS participant
+# outlives the test that made it.
+_OWNED_NODES = []
+
+
+def own_node(node):
+    """Register ``node`` to be destroyed after the test; return it."""
+    _OWNED_NODES.append(node)
+    return node
+
+
+def destroy_owned_nodes() -> None:
+    """Destroy the nodes registered by own_node(), newest first."""
+    while _OWNED_NODES:
+        _OWNED_NODES.pop().destroy_node()
+
+
 def next_domain_id() -> int:
     """Return a domain id unlikely to be used by another test or a parallel run."""
     return 1 + (_base + next(_counter)) % _DOMAIN_COUNT

@@ -23,20 +23,11 @@ import pytest
 import rclpy
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
-from ros_helpers import spin_until
+from ros_helpers import own_node, spin_until
 from rosgraph_msgs.msg import Clock
 from std_srvs.srv import Trigger
 
 PERIOD_NS = 100_000_000
-_NODES = []
-
-
-@pytest.fixture(autouse=True)
-def _destroy_nodes():
-    """Destroy the test's nodes afterwards, so that no DDS participant outlives it."""
-    yield
-    while _NODES:
-        _NODES.pop().destroy_node()
 
 
 class Harness:
@@ -62,7 +53,8 @@ class Harness:
         self.parameters = AsyncParameterClient(probe, 'estimator')
         executor.add_node(self.node)
         executor.add_node(probe)
-        _NODES.extend((self.node, probe))
+        own_node(self.node)
+        own_node(probe)
         assert spin_until(executor, lambda: (
             self.measurement_pub.get_subscription_count() == 1
             and self.set_state_pub.get_subscription_count() == 1

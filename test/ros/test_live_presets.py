@@ -30,7 +30,7 @@ import pytest
 import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from ros_helpers import assert_startup_refused, spin_until
+from ros_helpers import assert_startup_refused, own_node, spin_until
 
 FALSE_ALARM = 1e-6
 """Probability that a correct filter fails a test's k·σ checks, all of them together."""
@@ -39,15 +39,6 @@ TIMEOUT_S = 30.0
 PRIOR = dataclasses.replace(DEFAULTS, **SEED_SWITCH)
 """The estimator node's defaults with the seed switch: prior mode, no gate (preset train;
 the tests set theirs)."""
-_NODES = []
-
-
-@pytest.fixture(autouse=True)
-def _destroy_nodes():
-    """Destroy the test's nodes afterwards, so that no DDS participant outlives it."""
-    yield
-    while _NODES:
-        _NODES.pop().destroy_node()
 
 
 def seed_switch(preset: str):
@@ -516,7 +507,7 @@ def _add(executor, *nodes):
     """Add nodes to the executor; destroy them after the test."""
     for node in nodes:
         executor.add_node(node)
-        _NODES.append(node)
+        own_node(node)
 
 
 def _last_by_stamp(msgs):
@@ -794,7 +785,7 @@ def test_preset_and_scenario_parameters(ros_context):
     """Preset defaults show in the parameters; explicit values win; both are read-only."""
     robot = EstimatorNode(context=ros_context, parameter_overrides=[
         Parameter('preset', value='robot')])
-    _NODES.append(robot)
+    own_node(robot)
     assert list(robot.get_parameter('initial_state').value) == [0.0]
     assert list(robot.get_parameter('initial_covariance').value) == [0.0]
     assert robot.get_parameter('horizon_s').value == 0.0
@@ -807,13 +798,13 @@ def test_preset_and_scenario_parameters(ros_context):
     # (A namespace each: one process cannot have /control with two message types.)
     car = EstimatorNode(context=ros_context, namespace='car', parameter_overrides=[
         Parameter('preset', value='car'), Parameter('initial_state', value=[1.0, 2.0])])
-    _NODES.append(car)
+    own_node(car)
     assert car.estimator.initial_state.tolist() == [1.0, 2.0]
     assert list(car.get_parameter('initial_covariance').value) == [0.0, 0.05]
     assert car.control_subscription.msg_type is AccelStamped
     cv = EstimatorNode(context=ros_context, namespace='cv', parameter_overrides=[
         Parameter('preset', value='cv-position-velocity')])
-    _NODES.append(cv)
+    own_node(cv)
     assert cv.get_parameter('nominal_period_s').value == 1.0
     assert cv.subscription.msg_type is Odometry and cv.control_subscription is None
     for preset, words in (('range-bearing', 'cannot run live'), ('plane', 'preset must be')):
@@ -822,7 +813,7 @@ def test_preset_and_scenario_parameters(ros_context):
                 Parameter('preset', value=preset)])
     simulator = SimulatorNode(context=ros_context, parameter_overrides=[
         Parameter('scenario', value='robot')])
-    _NODES.append(simulator)
+    own_node(simulator)
     assert simulator.get_parameter('noise_std').value == 0.03
     assert simulator.control_pub.msg_type is TwistStamped
     assert not simulator.set_parameters([Parameter('scenario', value='car')])[0].successful
@@ -830,7 +821,7 @@ def test_preset_and_scenario_parameters(ros_context):
     assert simulator.simulation.speed_noise_std_mps == 0.5
     car_simulator = SimulatorNode(context=ros_context, namespace='car', parameter_overrides=[
         Parameter('scenario', value='car')])
-    _NODES.append(car_simulator)
+    own_node(car_simulator)
     assert car_simulator.get_parameter('initial_position').value == 0.2
     assert car_simulator.control_pub.msg_type is AccelStamped
     with pytest.raises(StartupError, match='scenario must be one of'):

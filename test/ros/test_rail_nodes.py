@@ -21,30 +21,20 @@ from kf_train.ros.simulator_node import SimulatorNode
 from kf_train.sim import make_stream, rail_scenario
 from nav_msgs.msg import Odometry
 import numpy as np
-import pytest
 import rclpy
 from rclpy.parameter import Parameter
-from ros_helpers import spin_until
+from ros_helpers import own_node, spin_until
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from std_msgs.msg import Float64MultiArray
 
 NS = 1_000_000_000
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-_NODES = []
-
-
-@pytest.fixture(autouse=True)
-def _destroy_nodes():
-    """Destroy the test's nodes afterwards, so that no DDS participant outlives it."""
-    yield
-    while _NODES:
-        _NODES.pop().destroy_node()
 
 
 def _add(executor, node):
     """Spin ``node`` in ``executor`` and destroy it after the test."""
     executor.add_node(node)
-    _NODES.append(node)
+    own_node(node)
     return node
 
 

@@ -18,16 +18,6 @@ import rclpy
 from rclpy.parameter import Parameter
 import ros_helpers
 
-_NODES = []
-
-
-@pytest.fixture(autouse=True)
-def _destroy_nodes():
-    """Destroy the test's nodes afterwards, so that no DDS participant outlives it."""
-    yield
-    while _NODES:
-        _NODES.pop().destroy_node()
-
 
 def _pipeline(ros_context, executor, simulator_parameters, estimator_parameters=None):
     """Return (simulator, estimator, delivered measurements) nodes spinning in executor."""
@@ -41,7 +31,7 @@ def _pipeline(ros_context, executor, simulator_parameters, estimator_parameters=
     tap.create_subscription(PoseWithCovarianceStamped, 'measurement', delivered.append, 100)
     for node in (simulator, estimator, tap):
         executor.add_node(node)
-        _NODES.append(node)
+        ros_helpers.own_node(node)
     return simulator, estimator, delivered
 
 
@@ -60,7 +50,7 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
     listener = rclpy.create_node('listener', context=ros_context)
     listener.create_subscription(Odometry, 'estimate', estimates.append, 100)
     executor.add_node(listener)
-    _NODES.append(listener)
+    ros_helpers.own_node(listener)
     assert ros_helpers.spin_until(executor, lambda: simulator.done.done(), 30.0)
     assert ros_helpers.spin_until(
         executor, lambda: estimator.received == simulator.delivered == len(delivered), 5.0)
@@ -95,7 +85,7 @@ def test_simulator_and_estimator_nodes_with_every_fault(ros_context, executor):
 def test_fault_parameters_change_at_runtime(ros_context):
     """Fault parameters are live; out-of-range values are refused and the old ones stay."""
     simulator = SimulatorNode(context=ros_context)
-    _NODES.append(simulator)
+    ros_helpers.own_node(simulator)
     assert simulator.faults.settings == FaultSettings()
     assert simulator.clock_pub is None  # /clock is advertised only with publish_clock
     results = simulator.set_parameters([Parameter('dropout_probability', value=0.25),
