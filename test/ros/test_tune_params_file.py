@@ -1,7 +1,7 @@
 """The estimator node takes the params file ``kf-train tune`` writes (rclpy in-process)."""
 
+import contextlib
 import io
-import sys
 
 from kf_train.cli.tune import main as tune_main
 from kf_train.ros.estimator_node import EstimatorNode
@@ -11,43 +11,45 @@ from rclpy.context import Context
 import yaml
 
 
-def main(argv):
-    """Run kf-train tune with the train preset unless one is given (the default is rail)."""
-    argv = [str(a) for a in argv]
-    if '--preset' not in argv and '--config' not in argv:
-        argv = ['--preset', 'train'] + argv
-    return tune_main(argv)
-
-
-def _tuned_params_file(directory) -> str:
-    """Run kf-train tune on a random-force train; return the params file it wrote."""
-    scenario = white_noise_acceleration_scenario(0.5, 1.0, 300, seed=11)
+def _tune(directory, t_s, z_m, preset_args=()) -> str:
+    """Write (t, z) as a CSV, run kf-train tune on it quietly; return the params file path."""
     path = directory / 'in.csv'
     path.write_text('t,z_position\n' + ''.join(
-        f'{t!r},{z!r}\n' for t, z in zip(scenario.t_s.tolist(), scenario.z[:, 0].tolist())))
-    out = io.StringIO()
-    stdout, sys.stdout = sys.stdout, out
+        f'{t!r},{z!r}\n' for t, z in zip(t_s.tolist(), z_m.tolist())))
+    params = directory / 'params.yaml'
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert tune_main([*preset_args, str(path), '--output', str(params)]) == 0
+    return str(params)
+
+
+@contextlib.contextmanager
+def _node_from(params: str, domain_id: int):
+    """Yield an EstimatorNode started with ``--ros-args --params-file params``."""
+    context = Context()
+    rclpy.init(args=['--ros-args', '--params-file', params], context=context,
+               domain_id=domain_id)
     try:
-        assert main([str(path), '--output', str(directory / 'params.yaml')]) == 0
+        node = EstimatorNode(context=context)
+        yield node
+        node.destroy_node()
     finally:
-        sys.stdout = stdout
-    return str(directory / 'params.yaml')
+        context.try_shutdown()
+
+
+def _tuned_values(params: str) -> dict:
+    """Return the node parameters a params file sets."""
+    with open(params) as stream:
+        return yaml.safe_load(stream)['estimator']['ros__parameters']
 
 
 def test_the_estimator_node_takes_the_params_file(tmp_path, domain_id):
     """``--ros-args --params-file PARAMS.yaml`` sets the node's parameters to the tuned values."""
-    path = _tuned_params_file(tmp_path)
-    values = yaml.safe_load(open(path))['estimator']['ros__parameters']
-    context = Context()
-    rclpy.init(args=['--ros-args', '--params-file', path], context=context,
-               domain_id=domain_id)
-    try:
-        node = EstimatorNode(context=context)
+    scenario = white_noise_acceleration_scenario(0.5, 1.0, 300, seed=11)
+    params = _tune(tmp_path, scenario.t_s, scenario.z[:, 0], ('--preset', 'train'))
+    values = _tuned_values(params)
+    with _node_from(params, domain_id) as node:
         for name, value in values.items():
             assert node.get_parameter(name).value == value, name
-        node.destroy_node()
-    finally:
-        context.try_shutdown()
 
 
 def test_the_estimator_node_runs_the_tuned_rail_preset(tmp_path, domain_id):
@@ -55,29 +57,13 @@ def test_the_estimator_node_runs_the_tuned_rail_preset(tmp_path, domain_id):
     from kf_train.sim.rail import rail_scenario
     scenario, _ = rail_scenario(seed=21, family='metro')
     rows = 1200                                     # 120 s at 10 Hz: a departure and a stop
-    path = tmp_path / 'rail.csv'
-    path.write_text('t,z_position\n' + ''.join(
-        f'{t!r},{z!r}\n' for t, z in zip(scenario.t_s[:rows].tolist(),
-                                         scenario.z[:rows, 0].tolist())))
-    out = io.StringIO()
-    stdout, sys.stdout = sys.stdout, out
-    try:
-        assert tune_main([str(path), '--output', str(tmp_path / 'params.yaml')]) == 0
-    finally:
-        sys.stdout = stdout
-    params = str(tmp_path / 'params.yaml')
-    values = yaml.safe_load(open(params))['estimator']['ros__parameters']
-    tuned = yaml.safe_load(open(values['preset']))
-    context = Context()
-    rclpy.init(args=['--ros-args', '--params-file', params], context=context,
-               domain_id=domain_id)
-    try:
-        node = EstimatorNode(context=context)
+    params = _tune(tmp_path, scenario.t_s[:rows], scenario.z[:rows, 0])
+    values = _tuned_values(params)
+    with open(values['preset']) as stream:
+        tuned = yaml.safe_load(stream)
+    with _node_from(params, domain_id) as node:
         for name, value in values.items():
             assert node.get_parameter(name).value == value, name
         assert node.preset.name == 'rail-tuned'
         for name in ('acceleration_noise', 'command_noise'):
             assert getattr(node.preset.parameters, name) == tuned['parameters'][name]
-        node.destroy_node()
-    finally:
-        context.try_shutdown()
