@@ -10,17 +10,13 @@ message at a time, and into a bag replayed with the same parameters; every
 import math
 import time
 
-from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
+from geometry_msgs.msg import Vector3Stamped
 from kf_train.cli import main as kf_train_main
 from kf_train.io.bagio_types import POSE, TYPESTORE
-from kf_train.ros import messages
-from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
-import rclpy
-from rclpy.parameter import Parameter
-from ros_helpers import spin_until
+from ros_helpers import live_estimator_outputs
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 
 NS = 1_000_000_000
@@ -59,37 +55,12 @@ def bag_message(stamp_ns, position_m):
 
 def live_outputs(context, executor, sequence, parameters):
     """Send ``sequence`` to an in-process node; return its outputs by topic."""
-    node = EstimatorNode(context=context, parameter_overrides=[
-        Parameter(name, value=value) for name, value in parameters.items()])
-    probe = rclpy.create_node('probe', context=context)
-    try:
-        publisher = probe.create_publisher(PoseWithCovarianceStamped, 'measurement', 10)
-        outputs = {'estimate': [], 'prediction': [], 'innovation': []}
-        for topic, kind in (('estimate', Odometry), ('prediction', Odometry),
-                            ('innovation', Vector3Stamped)):
-            probe.create_subscription(kind, topic, outputs[topic].append, 1000)
-        executor.add_node(node)
-        executor.add_node(probe)
-        assert spin_until(executor, lambda: (
-            publisher.get_subscription_count() == 1
-            and node.estimate_pub.get_subscription_count() == 1
-            and node.prediction_pub.get_subscription_count() == 1
-            and node.innovation_pub.get_subscription_count() == 1), 10.0)
-        for stamp_ns, position_m in sequence:
-            received = node.received
-            publisher.publish(messages.to_measurement_msg(stamp_ns, 'odom', position_m, 1.0))
-            assert spin_until(executor, lambda: node.received == received + 1, 5.0)
-            assert spin_until(executor, lambda: (
-                len(outputs['estimate']) == node.fused + node.corrections
-                and len(outputs['prediction']) == node.fused + node.corrections
-                and len(outputs['innovation']) == node.innovations), 5.0)
-        assert node.rejected >= 3 and node.estimator.stats().out_of_sequence >= 1
-        return outputs
-    finally:
-        executor.remove_node(node)
-        executor.remove_node(probe)
-        node.destroy_node()
-        probe.destroy_node()
+    published = (lambda node: node.fused + node.corrections)
+    node, outputs = live_estimator_outputs(context, executor, sequence, parameters, {
+        'estimate': (Odometry, published), 'prediction': (Odometry, published),
+        'innovation': (Vector3Stamped, lambda node: node.innovations)})
+    assert node.rejected >= 3 and node.estimator.stats().out_of_sequence >= 1
+    return outputs
 
 
 def replay_outputs(tmp_path, sequence, parameters):

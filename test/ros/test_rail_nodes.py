@@ -23,7 +23,7 @@ from nav_msgs.msg import Odometry
 import numpy as np
 import rclpy
 from rclpy.parameter import Parameter
-from ros_helpers import own_node, spin_until
+from ros_helpers import live_estimator_outputs, own_node, spin_until
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from std_msgs.msg import Float64MultiArray
 
@@ -92,27 +92,11 @@ def _rail_sequence(base_ns):
 
 
 def _live(context, executor, sequence, parameters):
-    """Send ``sequence`` to an in-process estimator; return its outputs by topic."""
-    node = _add(executor, EstimatorNode(context=context, parameter_overrides=[
-        Parameter(name, value=value) for name, value in parameters.items()]))
-    probe = _add(executor, rclpy.create_node('probe', context=context))
-    publisher = probe.create_publisher(PoseWithCovarianceStamped, 'measurement', 10)
-    outputs = {'estimate': [], 'regime_probabilities': []}
-    probe.create_subscription(Odometry, 'estimate', outputs['estimate'].append, 1000)
-    probe.create_subscription(Float64MultiArray, 'regime_probabilities',
-                              outputs['regime_probabilities'].append, 1000)
-    assert spin_until(executor, lambda: (
-        publisher.get_subscription_count() == 1
-        and node.estimate_pub.get_subscription_count() == 1
-        and node.regime_pub.get_subscription_count() == 1), 10.0)
-    for stamp_ns, position_m in sequence:
-        received = node.received
-        publisher.publish(messages.to_measurement_msg(stamp_ns, 'odom', position_m, 1.0))
-        assert spin_until(executor, lambda: node.received == received + 1, 5.0)
-        assert spin_until(executor, lambda: (
-            len(outputs['estimate']) == len(outputs['regime_probabilities'])
-            == node.fused + node.corrections), 5.0)
-    return node, outputs
+    """Send ``sequence`` to an in-process estimator; return (node, its outputs by topic)."""
+    published = (lambda node: node.fused + node.corrections)
+    return live_estimator_outputs(context, executor, sequence, parameters, {
+        'estimate': (Odometry, published),
+        'regime_probabilities': (Float64MultiArray, published)})
 
 
 def _replayed(tmp_path, sequence, parameters):
