@@ -38,7 +38,7 @@ from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.filters import (
     check_kind, chi2_quantile, FilterOptions, make_filter, PARTICLE_KINDS, psd_factor)
 from kf_train.presets import available_presets, load_preset, Preset, RAIL_PRESET_NAME
-from kf_train.sim import scenario_for_preset
+from kf_train.sim import RAIL_FAMILIES, scenario_for_preset
 import numpy as np
 
 EXIT_OK = 0
@@ -86,6 +86,8 @@ class Comparison(NamedTuple):
     """Row times of the scenario (rows,) [s]."""
     dim_x: int
     summaries: List[FilterSummary]
+    rail_family: Optional[str] = None
+    """The rail runs' family (``metro`` or ``regional``); None for the other presets."""
 
 
 def position_indices(preset: Preset) -> Tuple[int, ...]:
@@ -125,8 +127,12 @@ def nees(errors: np.ndarray, P: np.ndarray) -> np.ndarray:
 def run_comparison(preset_name: str, *, runs: int = DEFAULT_RUNS, seed: int = 0,
                    kinds: Optional[Sequence[str]] = None,
                    options: Optional[FilterOptions] = None,
-                   initial: str = 'sampled') -> Comparison:
-    """Run every filter on ``runs`` seeded scenarios of a shipped preset."""
+                   initial: str = 'sampled', rail_family: Optional[str] = None
+                   ) -> Comparison:
+    """Run every filter on ``runs`` seeded scenarios of a shipped preset.
+
+    ``rail_family`` (preset rail only; default metro) chooses the rail runs' family.
+    """
     if not isinstance(runs, int) or isinstance(runs, bool) or runs < 1:
         raise ValueError(f'runs must be a positive integer, got {runs!r}')
     if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
@@ -135,7 +141,9 @@ def run_comparison(preset_name: str, *, runs: int = DEFAULT_RUNS, seed: int = 0,
         raise ValueError(f"initial must be one of {', '.join(INITIAL_MODES)}, got {initial!r}")
     if preset_name == RAIL_PRESET_NAME:  # its IMM, from each run's first measurement
         from kf_train.cli.compare_rail import run_rail_comparison
-        return run_rail_comparison(runs, seed, kinds)
+        return run_rail_comparison(runs, seed, kinds, family=rail_family or 'metro')
+    if rail_family is not None:
+        raise ValueError(f'a rail family is for preset rail only, not {preset_name}')
     preset = load_preset(preset_name)
     kinds = tuple(default_kinds(preset) if kinds is None else kinds)
     if not kinds:
@@ -225,7 +233,8 @@ def format_table(comparison: Comparison) -> str:
              f'{rows} rows each, initial estimate '
              + {'sampled': 'drawn from N(truth, P0)',
                 'first_measurement': "set by the first measurement, the preset's priors "
-                                     'for the rest (rail: 120-s metro runs)'}.get(
+                                     f'for the rest (rail: 120-s {comparison.rail_family} '
+                                     'runs)'}.get(
                  comparison.initial, "the preset's fixed initial state")]
     header = (f"{'filter':12s} {'runs':>5s} {'failed':>6s} {'RMSE pos [m]':>12s} "
               f"{'final [m]':>10s} {'mean ANEES':>11s} {'99% bounds':>15s} "
@@ -317,6 +326,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument('--output-dir', metavar='DIR', default='.',
                         help='where to write compare-<preset>.png and .csv (default .)')
     parser.add_argument('--no-figure', action='store_true', help='skip the figure')
+    parser.add_argument('--rail-family', choices=RAIL_FAMILIES, default=None,
+                        help='preset rail only: the family of its runs (default metro)')
     add_filter_options(parser)
     parser.set_defaults(particles=DEFAULT_COMPARE_PARTICLES)
     return parser
@@ -339,7 +350,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error(str(error))
     try:
         comparison = run_comparison(args.preset, runs=args.runs, seed=args.seed,
-                                    kinds=kinds, options=options, initial=args.initial)
+                                    kinds=kinds, options=options, initial=args.initial,
+                                    rail_family=args.rail_family)
         print(format_table(comparison))
         os.makedirs(args.output_dir, exist_ok=True)
         stem = os.path.join(args.output_dir, f'compare-{comparison.preset}')

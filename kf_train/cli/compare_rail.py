@@ -2,8 +2,8 @@
 ``kf-train compare --preset rail``: the rail IMM on seeded Monte-Carlo rail runs.
 
 The rail preset has one filter, its IMM of four Kalman filters (``kf``; ``ekf`` is the
-same, the regimes being linear). Run r is the first ``duration_s`` of the metro-like
-rail run of seed ``seed + r`` (:func:`kf_train.sim.rail.rail_scenario`, σ = 1 m at
+same, the regimes being linear). Run r is the first ``duration_s`` of the rail run of
+seed ``seed + r`` of a family (metro-like by default, or regional-like) (:func:`kf_train.sim.rail.rail_scenario`, σ = 1 m at
 10 Hz: departures, cruising, slow zones, brakes and dwells), filtered row by row from
 its first measurement as the streaming estimator's default starts
 (:class:`kf_train.batch.RailSeriesFilter`). The truth has position, velocity and
@@ -63,4 +63,4 @@ def run_rail_comparison(runs: int, seed: int, kinds: Optional[Sequence[str]],
                           seconds[kind], max(steps, 1), SCORED_STATES, len(t_s), {})
                  for kind in kinds]
     return Comparison('rail', runs, seed, 'first_measurement', np.asarray(t_s), SCORED_STATES,
-                      summaries)
+                      summaries, rail_family=family)

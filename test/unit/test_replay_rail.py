@@ -144,6 +144,21 @@ def test_compare_runs_the_rail_imm_on_rail_runs():
         run_comparison('rail', runs=0)
 
 
+def test_compare_takes_the_rail_family(capsys):
+    metro = run_comparison('rail', runs=1, seed=3)
+    regional = run_comparison('rail', runs=1, seed=3, rail_family='regional')
+    assert '120-s metro runs' in format_table(metro)
+    assert '120-s regional runs' in format_table(regional)
+    # Other runs (a regional line is drawn from other ranges): other errors.
+    assert regional.summaries[0].rmse_position_m != metro.summaries[0].rmse_position_m
+    with pytest.raises(ValueError, match='for preset rail only'):
+        run_comparison('train', runs=1, rail_family='regional')
+    from kf_train.cli.compare import main as compare_main
+    assert compare_main(['--preset', 'train', '--runs', '1', '--rail-family', 'metro',
+                         '--no-figure']) == 1
+    assert 'for preset rail only' in capsys.readouterr().err
+
+
 def test_plot_draws_the_rail_preset(tmp_path, capsys):
     pytest.importorskip('matplotlib')
     from kf_train.cli.plotting import main as plot_main
