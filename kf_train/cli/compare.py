@@ -129,7 +129,8 @@ def run_comparison(preset_name: str, *, runs: int = DEFAULT_RUNS, seed: int = 0,
                    options: Optional[FilterOptions] = None,
                    initial: str = 'sampled', rail_family: Optional[str] = None
                    ) -> Comparison:
-    """Run every filter on ``runs`` seeded scenarios of a shipped preset.
+    """
+    Run every filter on ``runs`` seeded scenarios of a shipped preset.
 
     ``rail_family`` (preset rail only; default metro) chooses the rail runs' family.
     """

@@ -3,8 +3,9 @@
 
 The rail preset has one filter, its IMM of four Kalman filters (``kf``; ``ekf`` is the
 same, the regimes being linear). Run r is the first ``duration_s`` of the rail run of
-seed ``seed + r`` of a family (metro-like by default, or regional-like) (:func:`kf_train.sim.rail.rail_scenario`, σ = 1 m at
-10 Hz: departures, cruising, slow zones, brakes and dwells), filtered row by row from
+seed ``seed + r`` of a family, metro-like by default or regional-like
+(:func:`kf_train.sim.rail.rail_scenario`, σ = 1 m at 10 Hz: departures, cruising,
+slow zones, brakes and dwells), filtered row by row from
 its first measurement as the streaming estimator's default starts
 (:class:`kf_train.batch.RailSeriesFilter`). The truth has position, velocity and
 acceleration, so the NEES is taken over those three states (the filter's other
