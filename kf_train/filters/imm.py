@@ -132,14 +132,17 @@ class RateTransition:
 
     def matrix(self, dt_s: float, rates: Optional[np.ndarray] = None) -> np.ndarray:
         """Return Π(dt) for these rates (or ``rates``, e.g. scaled by the state)."""
-        rates = self.rates if rates is None else rates
-        leave = rates.sum(axis=1)                        # r_i
-        stay = np.exp(-leave * dt_s)                     # Π_ii = e^(-r_i dt)
-        with np.errstate(invalid='ignore', divide='ignore'):
-            share = np.where(leave[:, None] > 0.0, rates / leave[:, None], 0.0)
-        matrix = (1.0 - stay)[:, None] * share           # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
-        matrix[np.diag_indices_from(matrix)] = stay
-        return matrix
+        # Plain floats: a few modes, and a stream with jittered stamps asks at every step.
+        matrix = []
+        for i, row in enumerate((self.rates if rates is None else rates).tolist()):
+            row[i] = 0.0
+            leave = sum(row)                             # r_i
+            stay = math.exp(-leave * dt_s)               # Π_ii = e^(-r_i dt)
+            # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
+            row = [(1.0 - stay) * (r / leave) if leave > 0.0 else 0.0 for r in row]
+            row[i] = stay
+            matrix.append(row)
+        return np.array(matrix)
 
     def __call__(self, dt_s: float, state: IMMState) -> np.ndarray:
         """Return Π(dt_s)."""

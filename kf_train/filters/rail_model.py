@@ -47,9 +47,10 @@ from typing import Dict, Tuple
 from kf_train.filters import imm_stack
 from kf_train.filters.imm import IMM, IMMFilter, IMMState, RateTransition
 from kf_train.filters.models import LinearModel
+from kf_train.filters.rail_dynamics import (  # noqa: F401 (relaxation_noise: public here)
+    _phi, relaxation_noise, relaxation_rows, relaxation_transition, RelaxationNoise)
 from kf_train.filters.rail_mixing import EntryGather
 from kf_train.filters.rail_stop import StopFinder
-from kf_train.filters.validation import as_duration
 import numpy as np
 
 MODE_NAMES = ('stand', 'accelerate', 'cruise', 'brake')
@@ -58,9 +59,6 @@ STATE_NAMES = ('position', 'velocity', 'acceleration', 'commanded_acceleration',
 DIM_X = len(STATE_NAMES)
 STAND, ACCELERATE, CRUISE, BRAKE = range(4)
 _H = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
-# Below this x = dt/τ the φ functions use their Taylor series (no cancellation).
-_SERIES_BELOW = 0.1
-_GL_NODES, _GL_WEIGHTS = np.polynomial.legendre.leggauss(8)
 _CACHE_SIZE = 64
 
 
@@ -145,72 +143,6 @@ class RailModelParameters:
                         self.accelerate_std_mps2 ** 2, self.brake_std_mps2 ** 2])
 
 
-def _phi(x: np.ndarray) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """
-    Return φ1 = 1 - e^-x, φ2 = x - φ1 and φ3 = x²/2 - φ2 for x >= 0.
-
-    φ2 ≈ x²/2 and φ3 ≈ x³/6 for small x, where the differences cancel; there the
-    Taylor series Σ (-1)^k x^k / k! (k >= 2, resp. k >= 3) is used instead.
-    """
-    x = np.asarray(x, dtype=float)
-    phi1 = -np.expm1(-x)
-    phi2 = x - phi1
-    phi3 = x * x / 2.0 - phi2
-    small = x < _SERIES_BELOW
-    if np.any(small):
-        xs = x[small]
-        term = xs * xs / 2.0           # x² / 2!
-        series2 = np.zeros_like(xs)
-        series3 = np.zeros_like(xs)
-        for k in range(2, 12):         # 10 terms: error < x¹²/12! < 1e-21 for x < 0.1
-            series2 += term if k % 2 == 0 else -term
-            if k >= 3:
-                series3 += term if k % 2 == 1 else -term
-            term = term * xs / (k + 1)
-        phi2 = np.where(small, 0.0, phi2)
-        phi3 = np.where(small, 0.0, phi3)
-        phi2[small], phi3[small] = series2, series3
-    return phi1, phi2, phi3
-
-
-def relaxation_transition(dt_s, tau_s: float) -> np.ndarray:
-    """
-    Return F(dt) of ṗ = v, v̇ = a, ȧ = (ℓ - a)/τ, ℓ̇ = 0 for each dt: shape (k, 4, 4).
-
-    With x = dt/τ: a(dt) = e^-x a + φ1 ℓ, v(dt) = v + τ φ1 a + τ φ2 ℓ,
-    p(dt) = p + dt v + τ² φ2 a + τ² φ3 ℓ (exact solution of the linear ODE).
-    """
-    dt = np.atleast_1d(np.asarray(dt_s, dtype=float))
-    phi1, phi2, phi3 = _phi(dt / tau_s)
-    F = np.zeros(dt.shape + (4, 4))
-    F[:, 0, 0] = F[:, 1, 1] = F[:, 3, 3] = 1.0
-    F[:, 0, 1] = dt
-    F[:, 0, 2], F[:, 0, 3] = tau_s ** 2 * phi2, tau_s ** 2 * phi3
-    F[:, 1, 2], F[:, 1, 3] = tau_s * phi1, tau_s * phi2
-    F[:, 2, 2], F[:, 2, 3] = 1.0 - phi1, phi1
-    return F
-
-
-def relaxation_noise(dt_s: float, tau_s: float, q_a: float, q_l: float) -> np.ndarray:
-    """
-    Return Q(dt) = ∫₀^dt F(s) diag(0, 0, q_a, q_ℓ) F(s)ᵀ ds.
-
-    Gauss-Legendre, 8 nodes on panels no wider than τ/2: the integrand is a
-    polynomial of degree <= 4 times e^(-ks/τ), k <= 2, which 8 nodes integrate to
-    rounding on such a panel.
-    """
-    panels = max(1, int(math.ceil(dt_s / (0.5 * tau_s))))
-    edges = np.linspace(0.0, dt_s, panels + 1)
-    half = 0.5 * np.diff(edges)
-    s = ((edges[:-1] + half)[:, None] + half[:, None] * _GL_NODES).ravel()
-    w = (half[:, None] * _GL_WEIGHTS).ravel()
-    F = relaxation_transition(s, tau_s)
-    col_a, col_l = F[:, :, 2], F[:, :, 3]              # how noise on a and on ℓ spreads
-    Q = q_a * np.einsum('k,ka,kb->ab', w, col_a, col_a) + \
-        q_l * np.einsum('k,ka,kb->ab', w, col_l, col_l)
-    return 0.5 * (Q + Q.T)
-
-
 class _Cached:
     """dt -> matrix, remembering the last few dt values (a stream repeats its period)."""
 
@@ -223,7 +155,7 @@ class _Cached:
         """Return function(dt_s), computed once per dt."""
         value = self.values.get(dt_s)
         if value is None:
-            value = self.function(as_duration('dt', dt_s))
+            value = self.function(imm_stack.duration(dt_s))
             value.flags.writeable = False
             if len(self.values) >= _CACHE_SIZE:
                 self.values.pop(next(iter(self.values)))
@@ -245,24 +177,26 @@ def _stand_model(params: RailModelParameters) -> LinearModel:
 def _moving_transition(dt_s: float, tau_s: float) -> np.ndarray:
     """Return the 6x6 F(dt) of a moving regime: the relaxation, A and B held."""
     F = np.eye(DIM_X)
-    F[:4, :4] = relaxation_transition(dt_s, tau_s)[0]
+    F[:4, :4] = relaxation_rows(dt_s, tau_s, *_phi(dt_s / tau_s), 1.0, 0.0)
     return F
 
 
-def _moving_noise(dt_s: float, params: RailModelParameters) -> np.ndarray:
+def _moving_noise(dt_s: float, relaxation: RelaxationNoise, capability_noise: float
+                  ) -> np.ndarray:
     """Return the 6x6 Q(dt) of a moving regime: the relaxation's, and A, B's drift."""
     Q = np.zeros((DIM_X, DIM_X))
-    Q[:4, :4] = relaxation_noise(dt_s, params.response_time_s, params.acceleration_noise,
-                                 params.command_noise)
-    Q[4, 4] = Q[5, 5] = params.capability_noise * dt_s
+    Q[:4, :4] = relaxation(dt_s)
+    Q[4, 4] = Q[5, 5] = capability_noise * dt_s
     return Q
 
 
 def _moving_model(params: RailModelParameters) -> LinearModel:
     """Return a moving regime's Kalman model (all three share the dynamics)."""
     tau = params.response_time_s
+    relaxation = RelaxationNoise(tau, params.acceleration_noise, params.command_noise)
     return LinearModel(_Cached(lambda dt: _moving_transition(dt, tau)),
-                       _Cached(lambda dt: _moving_noise(dt, params)),
+                       _Cached(lambda dt: _moving_noise(dt, relaxation,
+                                                        params.capability_noise)),
                        _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
 
 
@@ -303,11 +237,19 @@ class RailModel(IMM):
         """Return (F, Q, Fᵀ, Π without brake -> stand) for dt_s, computed once per dt_s."""
         kept = self._per_dt.get(dt_s)
         if kept is None:
-            matrix = self._rates.matrix(dt_s)
-            matrix.flags.writeable = False
+            # Stacked straight from the regimes' own F and Q, unchecked: they are built
+            # here from checked parameters (finite and positive semi-definite for any
+            # finite dt, tested), and a prediction that overflows still raises. A sensor
+            # with jittered stamps brings a new dt at every step, so this is kept cheap.
+            stand, moving = self.modes[STAND], self.modes[ACCELERATE]
+            F = np.array((stand.F(dt_s),) + (moving.F(dt_s),) * 3)
+            Q = np.array((stand.Q(dt_s),) + (moving.Q(dt_s),) * 3)
+            kept = (F, Q, F.swapaxes(1, 2).copy(), self._rates.matrix(dt_s))
+            for array in kept:
+                array.flags.writeable = False
             if len(self._per_dt) >= _CACHE_SIZE:
                 self._per_dt.pop(next(iter(self._per_dt)))
-            kept = self._per_dt[dt_s] = self._stack.matrices(dt_s) + (matrix,)
+            self._per_dt[dt_s] = kept
         return kept
 
     def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -4,13 +4,15 @@ import dataclasses
 import math
 
 from hypothesis import given, settings, strategies as st
-from kf_train.filters.imm import IMMState, make_state
+from kf_train.filters.imm import check_transition_matrix, IMMState, make_state
+from kf_train.filters.rail_dynamics import RelaxationNoise
 from kf_train.filters.rail_model import (
     _phi, ACCELERATE, BRAKE, CRUISE, make_rail_filter, MODE_NAMES, RailModel,
     RailModelParameters, relaxation_noise, relaxation_transition, STAND)
 from kf_train.presets.rail import (
     load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_PATH)
 from kf_train.sim.rail import family_parameters, rail_scenario
+from kf_train.filters.validation import as_covariance, as_matrix
 import numpy as np
 import pytest
 from scipy.linalg import expm
@@ -81,6 +83,43 @@ def test_the_phi_series_joins_the_closed_form():
     np.testing.assert_allclose(phi3[:2], closed3[:2], rtol=1e-12)
     assert phi3[2] == pytest.approx(1e-18 / 6.0 - 1e-24 / 24.0, rel=1e-14)
     assert phi2[2] == pytest.approx(1e-12 / 2.0 - 1e-18 / 6.0, rel=1e-14)
+
+
+@pytest.mark.parametrize('tau', [0.3, 0.7, 2.0])
+def test_the_noise_series_is_the_quadrature(tau):
+    # The power series (dt <= 1.5 τ) against the Gauss-Legendre quadrature, both within
+    # ~1e-15 of ‖Q‖ of the integral: entries compared relative to sqrt(Q_aa Q_bb), the
+    # largest an entry can be, since the tiny dt give entries from dt to dt⁷ in size.
+    q_a, q_l = 2e-4, 3e-5
+    noise = RelaxationNoise(tau, q_a, q_l)
+    for dt in np.concatenate([np.geomspace(1e-6, 1.5 * tau, 60), [1.5 * tau * (1 + 1e-12)]]):
+        Q = noise(float(dt))
+        expected = relaxation_noise(float(dt), tau, q_a, q_l)
+        scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
+        scale[scale == 0.0] = 1.0
+        assert np.max(np.abs(Q - expected) / scale) <= 1e-13, dt
+        assert np.array_equal(Q, Q.T)
+
+
+@pytest.mark.parametrize('dt', [1e-9, 0.037, 0.1, 0.1 + 1e-7, 0.35, 1.2, 5.0, 400.0])
+def test_the_regimes_matrices_pass_the_checks_the_stack_skips(dt):
+    # RailModel stacks its regimes' F(dt) and Q(dt) unchecked (cheap at every new dt of
+    # a jittered stream): they are what kalman.predict's checks accept, for any dt.
+    F, Q, F_t, matrix = RailModel()._for_dt(dt)
+    for j in range(4):
+        as_matrix('F', F[j], 6, 6)
+        as_covariance('Q', Q[j], 6)
+        np.testing.assert_array_equal(F_t[j], F[j].T)
+    check_transition_matrix(matrix, 4)
+    assert matrix[BRAKE, STAND] == 0.0  # brake -> stand is the state's, added per step
+
+
+def test_the_phi_functions_of_a_float_are_those_of_an_array():
+    # One dt at a time (floats, math.expm1) and many (arrays, numpy.expm1) may differ
+    # in the last bit of e^-x, and φ2, φ3 by the cancellation's factor 3/x <= 30.
+    for x in (1e-7, 0.0999, 0.1, 0.5, 3.0, 40.0):
+        for scalar, array in zip(_phi(x), _phi(np.array([x]))):
+            assert scalar == pytest.approx(float(array[0]), rel=1e-14, abs=0.0)
 
 
 def test_entering_a_regime_is_an_exact_linear_transformation():
