@@ -107,45 +107,50 @@ class RelaxationNoise:
     """
     Q(dt) of :func:`relaxation_noise` for one (τ, q_a, q_ℓ), cheap for dt <= 1.5 τ.
 
-    The columns of F(s) that carry the noise, [τ²φ2, τφ1, e^-x, 0] for a and
-    [τ²φ3, τφ2, φ1, 1] for ℓ, are power series in s (each φ's is e^-x's, shifted); so
-    is each product of two of them (a convolution of coefficients), and its integral
-    from 0 to dt (each coefficient divided by its new power). Q's entries are then one
-    product of a fixed coefficient table with [dt, dt², ...]: a few numpy calls instead
-    of a quadrature. Entries (a, b) and (b, a) share one row: Q is exactly symmetric.
+    With x = s/τ, the columns of F(s) that carry the noise are [τ²φ2, τφ1, e^-x, 0]
+    for a and [τ²φ3, τφ2, φ1, 1] for ℓ: power series in x (each φ's is e^-x's, shifted)
+    times τ^p_a, p = (2, 1, 0, 0) for both. So is each product of two of them (a
+    convolution of coefficients), and its integral over s = τx from 0 to dt (each
+    coefficient divided by its new power, times τ). Q_ab is then τ^(1 + p_a + p_b)
+    times one product of a fixed table with [X, X², ...], X = dt/τ <= 1.5: a few
+    numpy calls instead of a quadrature, and no power of τ or dt that could overflow.
+    Entries (a, b) and (b, a) share one row: Q is exactly symmetric.
     """
 
     def __init__(self, tau_s: float, q_a: float, q_l: float):
         """Build the coefficient table for ``tau_s`` [s], ``q_a`` and ``q_l`` [m²/s⁵]."""
         self.tau_s, self.q_a, self.q_l = float(tau_s), float(q_a), float(q_l)
         k = np.arange(_NOISE_TERMS + 1)
-        factorials = np.array([float(math.factorial(i)) for i in k])
-        decay = (-1.0) ** k / factorials / self.tau_s ** k      # e^(-s/τ) in powers of s
+        decay = np.array([(-1.0) ** i / math.factorial(i) for i in k])   # e^-x
         phi1 = -decay
         phi1[0] = 0.0                                         # 1 - e^-x
         phi2 = -phi1
-        phi2[1] += 1.0 / self.tau_s                           # x - φ1
+        phi2[1] += 1.0                                        # x - φ1
         phi3 = -phi2
-        phi3[2] += 0.5 / self.tau_s ** 2                      # x²/2 - φ2
+        phi3[2] += 0.5                                        # x²/2 - φ2
         one, zero = np.zeros(k.size), np.zeros(k.size)
         one[0] = 1.0
-        tau = self.tau_s
-        columns = ((self.q_a, (tau * tau * phi2, tau * phi1, decay, zero)),
-                   (self.q_l, (tau * tau * phi3, tau * phi2, phi1, one)))
+        columns = ((self.q_a, (phi2, phi1, decay, zero)), (self.q_l, (phi3, phi2, phi1, one)))
         table = np.zeros((16, k.size))
         for q, column in columns:
             for a in range(4):
                 for b in range(a, 4):
                     product = np.convolve(column[a], column[b])[:k.size]
-                    table[4 * a + b] += q * product / (k + 1.0)   # ∫₀^dt s^k = dt^(k+1)/(k+1)
+                    table[4 * a + b] += q * product / (k + 1.0)   # ∫₀^X x^k = X^(k+1)/(k+1)
         for a in range(4):
             for b in range(a):
                 table[4 * a + b] = table[4 * b + a]
+        powers_of_tau = np.array([2.0, 1.0, 0.0, 0.0])
+        self._scale = (self.tau_s ** (1.0 + powers_of_tau[:, None] + powers_of_tau[None, :])
+                       ).reshape(16)                          # τ^(1 + p_a + p_b)
         self._table = table
         self._powers = k + 1.0
 
     def __call__(self, dt_s: float) -> np.ndarray:
         """Return the 4x4 Q(dt_s) (a new array)."""
-        if dt_s > _NOISE_SERIES_SPAN * self.tau_s:
+        x = dt_s / self.tau_s
+        if x > _NOISE_SERIES_SPAN:
             return relaxation_noise(dt_s, self.tau_s, self.q_a, self.q_l)
-        return self._table.dot(dt_s ** self._powers).reshape(4, 4)
+        Q = self._table.dot(x ** self._powers)
+        Q *= self._scale
+        return Q.reshape(4, 4)

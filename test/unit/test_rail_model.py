@@ -85,14 +85,16 @@ def test_the_phi_series_joins_the_closed_form():
     assert phi2[2] == pytest.approx(1e-12 / 2.0 - 1e-18 / 6.0, rel=1e-14)
 
 
-@pytest.mark.parametrize('tau', [0.3, 0.7, 2.0])
+@pytest.mark.parametrize('tau', [0.01, 0.3, 0.7, 2.0, 1e6])
 def test_the_noise_series_is_the_quadrature(tau):
     # The power series (dt <= 1.5 τ) against the Gauss-Legendre quadrature, both within
     # ~1e-15 of ‖Q‖ of the integral: entries compared relative to sqrt(Q_aa Q_bb), the
     # largest an entry can be, since the tiny dt give entries from dt to dt⁷ in size.
+    # The series is in x = dt/τ, so no τ (1e6 s here) makes a power overflow.
     q_a, q_l = 2e-4, 3e-5
     noise = RelaxationNoise(tau, q_a, q_l)
-    for dt in np.concatenate([np.geomspace(1e-6, 1.5 * tau, 60), [1.5 * tau * (1 + 1e-12)]]):
+    for dt in np.concatenate([np.geomspace(1e-6 * tau, 1.5 * tau, 60),
+                              [1.5 * tau * (1 + 1e-12)]]):
         Q = noise(float(dt))
         expected = relaxation_noise(float(dt), tau, q_a, q_l)
         scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
