@@ -9,10 +9,10 @@ from kf_train.filters.rail_dynamics import RelaxationNoise
 from kf_train.filters.rail_model import (
     _phi, ACCELERATE, BRAKE, CRUISE, make_rail_filter, MODE_NAMES, RailModel,
     RailModelParameters, relaxation_noise, relaxation_transition, STAND)
+from kf_train.filters.validation import as_covariance, as_matrix
 from kf_train.presets.rail import (
     load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_PATH)
 from kf_train.sim.rail import family_parameters, rail_scenario
-from kf_train.filters.validation import as_covariance, as_matrix
 import numpy as np
 import pytest
 from scipy.linalg import expm
