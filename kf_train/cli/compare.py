@@ -38,7 +38,7 @@ from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.filters import (
     check_kind, chi2_quantile, FilterOptions, make_filter, PARTICLE_KINDS, psd_factor)
 from kf_train.presets import available_presets, load_preset, Preset, RAIL_PRESET_NAME
-from kf_train.sim import RAIL_FAMILIES, scenario_for_preset
+from kf_train.sim import DEFAULT_RAIL_FAMILY, RAIL_FAMILIES, scenario_for_preset
 import numpy as np
 
 EXIT_OK = 0
@@ -142,7 +142,7 @@ def run_comparison(preset_name: str, *, runs: int = DEFAULT_RUNS, seed: int = 0,
         raise ValueError(f"initial must be one of {', '.join(INITIAL_MODES)}, got {initial!r}")
     if preset_name == RAIL_PRESET_NAME:  # its IMM, from each run's first measurement
         from kf_train.cli.compare_rail import run_rail_comparison
-        return run_rail_comparison(runs, seed, kinds, family=rail_family or 'metro')
+        return run_rail_comparison(runs, seed, kinds, family=rail_family or DEFAULT_RAIL_FAMILY)
     if rail_family is not None:
         raise ValueError(f'a rail family is for preset rail only, not {preset_name}')
     preset = load_preset(preset_name)

@@ -20,7 +20,7 @@ from typing import Optional, Sequence
 from kf_train.batch import RailSeriesFilter, run_filter_series, SeriesError
 from kf_train.estimator import RAIL_FILTER_KINDS
 from kf_train.presets import load_rail_preset
-from kf_train.sim import family_parameters, rail_scenario
+from kf_train.sim import DEFAULT_RAIL_FAMILY, family_parameters, rail_scenario
 import numpy as np
 
 RAIL_RUN_S = 120.0
@@ -30,7 +30,7 @@ SCORED_STATES = 3
 
 
 def run_rail_comparison(runs: int, seed: int, kinds: Optional[Sequence[str]],
-                        family: str = 'metro', duration_s: float = RAIL_RUN_S):
+                        family: str = DEFAULT_RAIL_FAMILY, duration_s: float = RAIL_RUN_S):
     """Return the :class:`~kf_train.cli.compare.Comparison` of the rail IMM over ``runs``."""
     from kf_train.cli.compare import _summary, Comparison, nees
     kinds = tuple(kinds or ('kf',))

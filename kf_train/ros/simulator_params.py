@@ -10,8 +10,8 @@ from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
 from kf_train.sim import (
-    CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, FaultSettings,
-    RAIL_FAMILIES, rail_parameters, ROBOT_SPEED_STD_MPS, SCENARIOS)
+    CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, DEFAULT_RAIL_FAMILY,
+    FaultSettings, RAIL_FAMILIES, rail_parameters, ROBOT_SPEED_STD_MPS, SCENARIOS)
 
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 FAULT_PARAMETERS = {
@@ -92,7 +92,7 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
     ParamSpec('seed', 'integer', 0,
               'Seed of the measurement noise and of the faults; -1 draws fresh entropy. '
               + _FIXED, range=(-1, 2 ** 31 - 1), live=False, group=_G_FIXED),
-    ParamSpec('rail_family', 'string', 'metro',
+    ParamSpec('rail_family', 'string', DEFAULT_RAIL_FAMILY,
               'rail: the kind of line whose ranges the run is drawn from by seed: metro '
               '(accel 0.8-1.3 m/s², brake 0.8-1.3 m/s², jerk 0.5-1 m/s³, line speed 15-25 m/s, '
               'stations 600-1500 m apart, dwell 15-40 s) or regional (0.4-0.9, 0.5-1.1, '

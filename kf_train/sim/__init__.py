@@ -17,6 +17,7 @@ from kf_train.sim import baselines
 from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
 from kf_train.sim.faults import Delivery, FAULT_STREAM, FaultInjector, FaultSettings
 from kf_train.sim.noise_simulation import white_noise_acceleration_scenario
+from kf_train.sim.rail import DEFAULT_FAMILY as DEFAULT_RAIL_FAMILY
 from kf_train.sim.rail import FAMILIES as RAIL_FAMILY_RANGES
 from kf_train.sim.rail import (
     family_parameters, rail_run, rail_scenario, RailParameters, RailRun)
@@ -36,7 +37,8 @@ from kf_train.sim.scenarios import (
 from kf_train.sim.simulation import TrainSample, TrainSeries, TrainSimulation
 
 __all__ = [
-    'ACCELERATION_SCENARIOS', 'PolynomialKF', 'RAIL_FAMILIES', 'RAIL_FAMILY_RANGES',
+    'ACCELERATION_SCENARIOS', 'DEFAULT_RAIL_FAMILY', 'PolynomialKF', 'RAIL_FAMILIES',
+    'RAIL_FAMILY_RANGES',
     'RAIL_HORIZON_S', 'rail_parameters', 'rail_run', 'rail_scenario', 'RAIL_WARMUP_S',
     'RailParameters', 'RailRun', 'RailStream', 'Score', 'score_predictions', 'Track',
     'tuned_baselines', 'TunedBaseline', 'baselines', 'CAR_ACCELERATION_MPS2', 'car_scenario',

@@ -139,6 +139,9 @@ class RailFamily:
         return RailParameters(**values)
 
 
+DEFAULT_FAMILY = 'metro'
+"""The family a rail run is drawn from when none is named."""
+
 FAMILIES = {
     # Metro: close stations, brisk acceleration and braking, short dwells.
     'metro': RailFamily(
@@ -363,7 +366,7 @@ def family_parameters(family: str, seed: int) -> RailParameters:
     return FAMILIES[family].draw(_streams(seed)[0])
 
 
-def rail_scenario(seed: int = 0, family: str = 'metro',
+def rail_scenario(seed: int = 0, family: str = DEFAULT_FAMILY,
                   parameters: Optional[RailParameters] = None, rate_hz: float = 10.0,
                   noise_std_m: float = 1.0) -> Tuple[Scenario, RailRun]:
     """

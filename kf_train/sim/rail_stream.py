@@ -18,7 +18,8 @@ import dataclasses
 from typing import Optional, Sequence
 
 from kf_train.sim.rail import (  # the planner's steps: this module plans lazily
-    _Plan, _plan_section, _streams, family_parameters, RailParameters, RailRun)
+    _Plan, _plan_section, _streams, DEFAULT_FAMILY, family_parameters, RailParameters,
+    RailRun)
 from kf_train.sim.scenario_streams import ScenarioSample
 import numpy as np
 
@@ -37,7 +38,7 @@ def _pair(name: str, value) -> Optional[tuple]:
     return float(value[0]), float(value[1])
 
 
-def rail_parameters(family: str = 'metro', seed: int = 0, *,
+def rail_parameters(family: str = DEFAULT_FAMILY, seed: int = 0, *,
                     accel_mps2: Optional[float] = None, brake_mps2: Optional[float] = None,
                     jerk_mps3: Optional[float] = None, line_speed_mps: Optional[float] = None,
                     station_spacing_m: Optional[Sequence[float]] = None,
@@ -62,7 +63,7 @@ class RailStream:
 
     def __init__(self, rate_hz: float, seed: Optional[int], noise_std_m: float = 1.0,
                  initial_position_m: float = 0.0,
-                 parameters: Optional[RailParameters] = None, family: str = 'metro'):
+                 parameters: Optional[RailParameters] = None, family: str = DEFAULT_FAMILY):
         """
         Plan the run of ``seed`` (None: fresh entropy) with ``parameters``.
 

@@ -227,9 +227,9 @@ def make_stream(scenario: str, rate_hz: float, seed: Optional[int], *,
     velocity = velocity if velocity_mps is None else velocity_mps
     if scenario == 'rail':
         # (rail_stream builds on this module's ScenarioSample: imported here.)
-        from kf_train.sim.rail_stream import rail_parameters, RailStream
+        from kf_train.sim.rail_stream import DEFAULT_FAMILY, rail_parameters, RailStream
         rail = dict(rail or {})
-        family = rail.pop('family', 'metro')
+        family = rail.pop('family', DEFAULT_FAMILY)
         seed = _rail_seed(seed)
         return RailStream(rate_hz, seed, noise, position,
                           rail_parameters(family, seed, **rail))
