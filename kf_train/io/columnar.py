@@ -29,6 +29,8 @@ import numpy as np
 _REPR_LOW, _REPR_HIGH = 1e-9, 1e-4
 # Within that band polars writes decimals (0.0000123) from here on, exponents below.
 _REPR_DECIMAL = 1e-5
+# The doubles of that decimal part whose repr has a single digit: 1e-05 .. 9e-05.
+_SINGLE_DIGIT_E05 = np.array([float(f'{d}e-05') for d in range(1, 10)])
 EXTRA_HINT = "install the fast extra: pip install 'kf_train[fast]' (polars)"
 # Parquet written with LZ4: estimates are noisy doubles that no codec shrinks much
 # (zstd files are ~20 % smaller), and LZ4 writes them in a third of zstd's CPU time.
@@ -229,7 +231,7 @@ def text_expression(values: np.ndarray, name: str):
         return None
     low, high = float(values.min()), float(values.max())
     if not (math.isfinite(low) and math.isfinite(high)):
-        return _mixed_text(name, True)
+        return _mixed_text(name, values, True)
     if low >= 0.0:
         small, large = low, high                  # the range of |v|
     elif high <= 0.0:
@@ -246,8 +248,8 @@ def text_expression(values: np.ndarray, name: str):
     if small >= _REPR_LOW and large < _REPR_DECIMAL:
         return _exponent_padded(column).alias(name)
     if small >= _REPR_DECIMAL and large < _REPR_HIGH:
-        return _scientific_e05(column).alias(name)
-    return _mixed_text(name, False)
+        return _scientific_e05(column, values).alias(name)
+    return _mixed_text(name, values, False)
 
 
 def _exponent_padded(column):
@@ -256,14 +258,14 @@ def _exponent_padded(column):
     return column.cast(pl.String).str.replace_all('e-', 'e-0', literal=True)
 
 
-def _mixed_text(name: str, non_finite: bool):
+def _mixed_text(name: str, values: np.ndarray, non_finite: bool):
     """Return repr's text of a column that crosses the band (or has non-finite values)."""
     pl = _pl()
     column = pl.col(name)
     size = column.abs()
     text = pl.when(size.is_between(_REPR_LOW, _REPR_DECIMAL, closed='left')).then(
         _exponent_padded(column)).when(size.is_between(
-            _REPR_DECIMAL, _REPR_HIGH, closed='left')).then(_scientific_e05(column))
+            _REPR_DECIMAL, _REPR_HIGH, closed='left')).then(_scientific_e05(column, values))
     if non_finite:
         text = text.when(column.is_nan()).then(pl.lit('nan')).when(
             column == float('inf')).then(pl.lit('inf')).when(
@@ -271,22 +273,27 @@ def _mixed_text(name: str, non_finite: bool):
     return text.otherwise(column.cast(pl.String)).alias(name)
 
 
-def _scientific_e05(column):
+def _scientific_e05(column, values: np.ndarray):
     """
     Return repr's text of doubles with 1e-5 <= |v| < 1e-4 (d.ddde-05), from polars' digits.
 
     polars writes |v| there as 0.0000ddd (shortest round-trip digits, repr's): the
     digits after the prefix '0.0000' are repr's mantissa, d.dd, exponent -05 (a single
-    digit: d alone). String slicing, ≈3x faster than re-writing the values in polars'
-    scientific notation and splitting the text.
+    digit: d alone, no point). String slicing, ≈3x faster than re-writing the values in
+    polars' scientific notation and splitting the text. ``values`` (the column's, or a
+    superset) say whether the rare cases need their branch: a sign, a single digit.
     """
     pl = _pl()
-    digits = column.abs().cast(pl.String).str.slice(6)
-    text = pl.when(digits.str.len_bytes() == 1).then(
-        pl.concat_str([digits, pl.lit('e-05')])).otherwise(    # 1e-05, 2e-05: no point
-            pl.concat_str([digits.str.slice(0, 1), pl.lit('.'), digits.str.slice(1),
-                           pl.lit('e-05')]))
-    return pl.when(column < 0.0).then(pl.concat_str([pl.lit('-'), text])).otherwise(text)
+    negative = bool((values < 0.0).any())
+    text = (column.abs() if negative else column).cast(pl.String)
+    point = pl.lit('.')
+    if np.isin(np.abs(values), _SINGLE_DIGIT_E05).any():     # 1e-05, 2e-05, ...
+        point = pl.when(text.str.len_bytes() == 7).then(pl.lit('')).otherwise(point)
+    mantissa = pl.concat_str([text.str.slice(6, 1), point, text.str.slice(7), pl.lit('e-05')])
+    if not negative:
+        return mantissa
+    return pl.when(column < 0.0).then(pl.concat_str([pl.lit('-'), mantissa])).otherwise(
+        mantissa)
 
 
 def _frame(header: Sequence[str], columns: Sequence[np.ndarray], ids):
