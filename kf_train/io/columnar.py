@@ -5,7 +5,8 @@ Why polars (measurements in ``docs/scale.md``, script ``benchmarks/io_libraries.
 on our tables it writes CSV about 3x faster than pyarrow and reads and writes Parquet
 faster too; and its number text is Python's ``repr`` (the shortest string that reads
 back to the same double) for every double except two layout rules, which
-:func:`repr_strings` rewrites, so a replay writes the same bytes with or without it.
+:func:`text_expression` rewrites (inside the write), so a replay writes the same bytes with
+or without it.
 
 * Readers yield :class:`Piece` s of ``chunk_rows`` rows: float64 columns, and the id
   column as codes into the piece's sorted labels. A CSV reader that meets anything it
