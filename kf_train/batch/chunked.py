@@ -245,8 +245,11 @@ class ObjectStates:
     def remember(self, codes: np.ndarray, t: np.ndarray, t_ns: np.ndarray,
                  first_row: int, est: Estimates) -> None:
         """Store every object's last row of a block."""
-        objs, from_end = np.unique(codes[::-1], return_index=True)
-        rows = codes.shape[0] - 1 - from_end             # each object's last row
+        if codes.shape[0] and (codes == codes[0]).all():   # one object (no sort)
+            objs, rows = codes[:1], np.array([codes.shape[0] - 1])
+        else:
+            objs, from_end = np.unique(codes[::-1], return_index=True)
+            rows = codes.shape[0] - 1 - from_end             # each object's last row
         self.seen[objs] = True
         self.last_ns[objs], self.last_t[objs] = t_ns[rows], t[rows]
         self.last_row[objs] = first_row + rows

@@ -188,8 +188,11 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
         empty, empty3 = np.empty((0, n)), np.empty((0, n, n))
         return SeriesResult(t_s, empty, empty3, empty, empty3, empty3, horizon_s,
                             empty if horizon_s else None, empty3 if horizon_s else None)
-    dts, inv = np.unique(dt, return_inverse=True)
-    inv = inv.reshape(-1)
+    if dt[0] > 0.0 and (dt == dt[0]).all():   # one time step (no sort): np.unique's result
+        dts, inv = dt[:1].copy(), np.zeros(N, dtype=np.intp)
+    else:
+        dts, inv = np.unique(dt, return_inverse=True)
+        inv = inv.reshape(-1)
     F_u, Q_u = dyn.F_batch(dts), dyn.Q_batch(dts)
     if not np.any(Q_u) and _well_conditioned(P0):
         P = _covariances_by_information(F_u, inv, H, R, P0, N, keep)

@@ -210,7 +210,8 @@ def _line_blocks(stream) -> Iterator[bytes]:
                 yield text.replace(b'\r\n', b'\n').replace(b'\r', b'\n')
             return
         cut = text.rfind(b'\n') + 1
-        while cut and text.count(b'"', 0, cut) % 2:     # inside a quoted field
+        quoted = b'"' in text                           # rare: then never cut inside one
+        while quoted and cut and text.count(b'"', 0, cut) % 2:
             cut = text.rfind(b'\n', 0, cut - 1) + 1
         if cut == 0:
             rest = text

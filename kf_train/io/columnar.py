@@ -5,7 +5,8 @@ Why polars (measurements in ``docs/scale.md``, script ``benchmarks/io_libraries.
 on our tables it writes CSV about 3x faster than pyarrow and reads and writes Parquet
 faster too; and its number text is Python's ``repr`` (the shortest string that reads
 back to the same double) for every double except two layout rules, which
-:func:`repr_strings` rewrites, so a replay writes the same bytes with or without it.
+:func:`text_expression` rewrites (inside the write), so a replay writes the same bytes with
+or without it.
 
 * Readers yield :class:`Piece` s of ``chunk_rows`` rows: float64 columns, and the id
   column as codes into the piece's sorted labels. A CSV reader that meets anything it
@@ -19,6 +20,7 @@ Nothing else in the package imports polars; this module imports it on first use,
 there).
 """
 
+import math
 import os
 from typing import Callable, Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence
 
@@ -28,6 +30,8 @@ import numpy as np
 _REPR_LOW, _REPR_HIGH = 1e-9, 1e-4
 # Within that band polars writes decimals (0.0000123) from here on, exponents below.
 _REPR_DECIMAL = 1e-5
+# The doubles of that decimal part whose repr has a single digit: 1e-05 .. 9e-05.
+_SINGLE_DIGIT_E05 = np.array([float(f'{d}e-05') for d in range(1, 10)])
 EXTRA_HINT = "install the fast extra: pip install 'kf_train[fast]' (polars)"
 # Parquet written with LZ4: estimates are noisy doubles that no codec shrinks much
 # (zstd files are ~20 % smaller), and LZ4 writes them in a third of zstd's CPU time.
@@ -194,8 +198,23 @@ def repr_strings(values: np.ndarray, name: str = ''):
     """
     Return the doubles as a polars Series: Float64 if polars writes them as repr(), else text.
 
-    polars' shortest round-trip digits are repr's, but its layout differs in one band,
-    1e-9 <= |v| < 1e-4:
+    The Series form of :func:`text_expression` (tests, and anyone who needs the text).
+    """
+    pl = _pl()
+    values = np.asarray(values, dtype=np.float64)
+    expression = text_expression(values, 'v')
+    if expression is None:
+        return pl.Series(name, values)
+    return pl.DataFrame({'v': values}).select(expression).to_series().alias(name)
+
+
+def text_expression(values: np.ndarray, name: str):
+    """
+    Return None if polars writes column ``name`` (``values``) as repr(), else its repr text.
+
+    The text is a polars expression on ``pl.col(name)``, evaluated by polars in its own
+    threads without the GIL while the block is written. polars' shortest round-trip
+    digits are repr's, but its layout differs in one band, 1e-9 <= |v| < 1e-4:
 
     * below 1e-5 polars writes the exponent form with a one-digit exponent, 1.5e-7,
       where repr pads it, 1.5e-07: polars' text with 'e-' made 'e-0' (every value of
@@ -203,65 +222,87 @@ def repr_strings(values: np.ndarray, name: str = ''):
     * from 1e-5 it writes 0.0000123 where repr writes 1.23e-05: the digits after
       '0.0000' are repr's mantissa (:func:`_scientific_e05`).
 
-    Non-finite values, rare, are written by repr. A column of the train preset's
-    variances lies below 1e-5 on most rows of a long log: that part costs a cast and a
-    literal replace (≈5 ms per 65 536 values), three times less than the scientific
-    notation.
+    Non-finite values, rare, are written as repr writes them. Which case applies is
+    decided from the column's minimum and maximum (two passes without a temporary), so
+    a column outside the band, or wholly inside one part of it (the train preset's
+    variances on most rows of a long log), costs no per-row mask.
     """
     pl = _pl()
-    values = np.asarray(values, dtype=np.float64)
-    size = np.abs(values)
-    odd = (size >= _REPR_LOW) & (size < _REPR_HIGH)
-    finite = np.isfinite(values)
-    if not odd.any() and finite.all():
-        return pl.Series(name, values)
-    text = pl.Series(name, values).cast(pl.String)
-    low = odd & (size < _REPR_DECIMAL)
-    if low.all():
-        return text.str.replace('e-', 'e-0', literal=True)
-    if low.any():
-        part = np.flatnonzero(low)
-        text = text.scatter(part, text.gather(part).str.replace('e-', 'e-0', literal=True))
-    high = np.flatnonzero(odd & ~low)
-    if high.size:
-        text = text.scatter(high, _scientific_e05(values[high], name))
-    bad = np.flatnonzero(~finite)
-    if bad.size:
-        text = text.scatter(bad, [repr(v) for v in values[bad].tolist()])
-    return text
+    if not values.size:
+        return None
+    low, high = float(values.min()), float(values.max())
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return _mixed_text(name, values, True)
+    if low >= 0.0:
+        small, large = low, high                  # the range of |v|
+    elif high <= 0.0:
+        small, large = -high, -low
+    else:                                         # both signs: |v| may be anything
+        size = np.abs(values)
+        odd = (size >= _REPR_LOW) & (size < _REPR_HIGH)
+        if not odd.any():
+            return None
+        small, large = float(size.min()), float(size.max())
+    if large < _REPR_LOW or small >= _REPR_HIGH:
+        return None
+    column = pl.col(name)
+    if small >= _REPR_LOW and large < _REPR_DECIMAL:
+        return _exponent_padded(column).alias(name)
+    if small >= _REPR_DECIMAL and large < _REPR_HIGH:
+        return _scientific_e05(column, values).alias(name)
+    return _mixed_text(name, values, False)
 
 
-def _scientific_e05(values: np.ndarray, name: str):
+def _exponent_padded(column):
+    """Return repr's text of doubles with 1e-9 <= |v| < 1e-5: polars' with 'e-' made 'e-0'."""
+    pl = _pl()
+    return column.cast(pl.String).str.replace_all('e-', 'e-0', literal=True)
+
+
+def _mixed_text(name: str, values: np.ndarray, non_finite: bool):
+    """Return repr's text of a column that crosses the band (or has non-finite values)."""
+    pl = _pl()
+    column = pl.col(name)
+    size = column.abs()
+    text = pl.when(size.is_between(_REPR_LOW, _REPR_DECIMAL, closed='left')).then(
+        _exponent_padded(column)).when(size.is_between(
+            _REPR_DECIMAL, _REPR_HIGH, closed='left')).then(_scientific_e05(column, values))
+    if non_finite:
+        text = text.when(column.is_nan()).then(pl.lit('nan')).when(
+            column == float('inf')).then(pl.lit('inf')).when(
+                column == float('-inf')).then(pl.lit('-inf'))
+    return text.otherwise(column.cast(pl.String)).alias(name)
+
+
+def _scientific_e05(column, values: np.ndarray):
     """
     Return repr's text of doubles with 1e-5 <= |v| < 1e-4 (d.ddde-05), from polars' digits.
 
     polars writes |v| there as 0.0000ddd (shortest round-trip digits, repr's): the
     digits after the prefix '0.0000' are repr's mantissa, d.dd, exponent -05 (a single
-    digit: d alone). String slicing, ≈3x faster than re-writing the values in polars'
-    scientific notation and splitting the text.
+    digit: d alone, no point). String slicing, ≈3x faster than re-writing the values in
+    polars' scientific notation and splitting the text. ``values`` (the column's, or a
+    superset) say whether the rare cases need their branch: a sign, a single digit.
     """
     pl = _pl()
-    digits = pl.Series('d', np.abs(values)).cast(pl.String).str.slice(6)
-    column = pl.col('d')
-    text = pl.DataFrame([digits]).select(pl.concat_str(
-        [column.str.slice(0, 1), pl.lit('.'), column.str.slice(1), pl.lit('e-05')]).alias(
-            name)).to_series()
-    single = np.flatnonzero(digits.str.len_bytes().to_numpy() == 1)
-    if single.size:                                   # 1e-05, 2e-05, ...: no point
-        text = text.scatter(single, digits.gather(single) + 'e-05')
-    negative = np.flatnonzero(values < 0.0)
-    if negative.size:
-        text = text.scatter(negative, '-' + text.gather(negative))
-    return text
+    negative = bool((values < 0.0).any())
+    text = (column.abs() if negative else column).cast(pl.String)
+    point = pl.lit('.')
+    if np.isin(np.abs(values), _SINGLE_DIGIT_E05).any():     # 1e-05, 2e-05, ...
+        point = pl.when(text.str.len_bytes() == 7).then(pl.lit('')).otherwise(point)
+    mantissa = pl.concat_str([text.str.slice(6, 1), point, text.str.slice(7), pl.lit('e-05')])
+    if not negative:
+        return mantissa
+    return pl.when(column < 0.0).then(pl.concat_str([pl.lit('-'), mantissa])).otherwise(
+        mantissa)
 
 
-def _frame(header: Sequence[str], columns: Sequence[np.ndarray], ids, as_text: bool):
-    """Return a block as a polars DataFrame (the id first when given)."""
+def _frame(header: Sequence[str], columns: Sequence[np.ndarray], ids):
+    """Return a block as a polars DataFrame of float64 columns (the id first when given)."""
     pl = _pl()
     data = [] if ids is None else [ids.alias(header[0])]
     names = header if ids is None else header[1:]
-    for name, column in zip(names, columns):
-        data.append(repr_strings(column, name) if as_text else pl.Series(name, column))
+    data += [pl.Series(name, column) for name, column in zip(names, columns)]
     return pl.DataFrame(data)
 
 
@@ -283,7 +324,14 @@ class CsvWriter:
         """Write one block (``ids``: a Series from :func:`id_series`, or None)."""
         if not len(columns[0]):
             return
-        _frame(self.header, columns, ids, True).write_csv(self.stream, include_header=False)
+        names = self.header if ids is None else self.header[1:]
+        texts = [text_expression(np.asarray(column, dtype=np.float64), name)
+                 for name, column in zip(names, columns)]
+        frame = _frame(self.header, columns, ids).lazy()
+        texts = [text for text in texts if text is not None]
+        if texts:
+            frame = frame.with_columns(texts)
+        frame.sink_csv(self.stream, include_header=False)
 
 
 def write_parquet_file(path: str, header: Sequence[str], has_id: bool,
@@ -302,7 +350,7 @@ def write_parquet_file(path: str, header: Sequence[str], has_id: bool,
 
     def source(with_columns, predicate, n_rows, batch_size) -> Iterator:
         for columns, ids in blocks:
-            yield _frame(header, columns, ids, False)
+            yield _frame(header, columns, ids)
 
     register_io_source(source, schema=schema).sink_parquet(path, compression=COMPRESSION)
 
@@ -310,4 +358,4 @@ def write_parquet_file(path: str, header: Sequence[str], has_id: bool,
 def write_parquet_part(path: str, header: Sequence[str], columns: Sequence[np.ndarray],
                        ids=None) -> None:
     """Write one block as a Parquet file (a part of a dataset directory)."""
-    _frame(header, columns, ids, False).write_parquet(path, compression=COMPRESSION)
+    _frame(header, columns, ids).write_parquet(path, compression=COMPRESSION)
