@@ -20,7 +20,7 @@ rounding (tested).
 """
 
 import math
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 from kf_train.batch.noise_likelihood import is_constant_velocity, LOG_2PI, measured_states
 from kf_train.filters import white_noise_integrals
@@ -34,12 +34,51 @@ def batched(preset: Preset) -> bool:
             and measured_states(preset) == (0,))
 
 
+class GainCache:
+    """
+    The covariance pass of earlier windows, per q, for windows that share it.
+
+    The covariances, innovation variances s_k and gains of the filter do not depend on
+    the measured values, only on the times, R, the starting variances and q. A node
+    sampled at a fixed rate sees the same times in every window, and its grids repeat
+    (the coarse grid whole, the fine grids mostly), so :class:`WindowLikelihood` takes
+    s_k and the gains of a q computed for an earlier window instead of recomputing
+    them: the same numbers from the same operations, so ℓ is bit for bit the same.
+    Each batch is kept as computed; a q points into its batch. At most
+    :data:`MAX_CACHED_Q` q are kept (then all are forgotten): memory stays bounded.
+    """
+
+    def __init__(self):
+        """Start empty."""
+        self.key: Optional[tuple] = None
+        self.columns: Dict[float, Tuple[np.ndarray, np.ndarray, int]] = {}
+        self.sums: Dict[bytes, np.ndarray] = {}
+
+    def use(self, key: tuple) -> None:
+        """Keep what was computed for windows of ``key`` only (forget it if another)."""
+        if key != self.key or len(self.columns) > MAX_CACHED_Q or len(
+                self.sums) > MAX_CACHED_GRIDS:
+            self.key, self.columns, self.sums = key, {}, {}
+
+
+MAX_CACHED_Q = 2048
+"""q values whose covariance pass a :class:`GainCache` keeps (~7 kB each for 300 rows)."""
+MAX_CACHED_GRIDS = 256
+"""Grids whose Σ log s_k a :class:`GainCache` keeps (a grid seen again reuses it)."""
+
+
 class WindowLikelihood:
     """ℓ(q) of one window for many q at once (see the module docstring)."""
 
     def __init__(self, preset: Preset, t_s: np.ndarray, z: np.ndarray,
-                 u: Optional[np.ndarray], variance_m2: float, first_velocity_std_mps: float):
-        """Take the window: times (N,) [s], positions (N,), controls (N, p) or None, R."""
+                 u: Optional[np.ndarray], variance_m2: float, first_velocity_std_mps: float,
+                 cache: Optional[GainCache] = None):
+        """
+        Take the window: times (N,) [s], positions (N,), controls (N, p) or None, R.
+
+        ``cache`` (optional) holds the covariance pass of earlier windows of the same
+        times, R and first velocity variance, reused for the q it has (bit for bit).
+        """
         dt = np.diff(t_s)
         Q = preset.dynamics.Q_batch(dt)                      # the preset's own Q(dt)
         third, half, one = white_noise_integrals(dt)         # q·W(dt), W's entries
@@ -54,17 +93,89 @@ class WindowLikelihood:
         self._p11 = float(first_velocity_std_mps) ** 2
         self.rows = len(self._dt)
         """Innovations ℓ sums (the rows after the first)."""
+        self._cache = cache
+        if cache is not None:
+            cache.use((np.concatenate((dt,) + self._Q + self._W).tobytes(), self._r,
+                       self._p11))
 
     def log_likelihoods(self, q: np.ndarray) -> np.ndarray:
         """Return ℓ(q) for every q of ``q`` (G,): −½ Σ_k (log 2π + log s_k + y_k² / s_k)."""
         q = np.asarray(q, dtype=float)
+        S, K = self._gains(q)
+        Y = self._innovations(K)
+        cache = self._cache
+        key = q.tobytes()
+        log_sum = None if cache is None else cache.sums.get(key)
+        if log_sum is None:
+            log_sum = np.log(S).sum(axis=0)
+            if cache is not None:
+                cache.sums[key] = log_sum
+        total = log_sum + (Y * Y / S).sum(axis=0)
+        return -0.5 * (self.rows * LOG_2PI + total)
+
+    def _gains(self, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Return s_k (rows, G) and the gains K_k (rows, 2, G): cached or computed."""
+        cache = self._cache
+        if cache is None:
+            return self._covariance_pass(q)
+        columns = cache.columns
+        values = q.tolist()
+        found = [columns.get(v) for v in values]
+        # Each q once (the fine grids of grid_search may share points).
+        missing = list(dict.fromkeys(v for v, hit in zip(values, found) if hit is None))
+        if missing:
+            S, K = self._covariance_pass(np.array(missing))
+            for i, v in enumerate(missing):
+                columns[v] = (S, K, i)
+            found = [columns[v] for v in values]
+        first = found[0]
+        if all(hit[0] is first[0] for hit in found) and [
+                hit[2] for hit in found] == list(range(first[2], first[2] + len(found))):
+            span = slice(first[2], first[2] + len(found))   # one batch, in order
+            return (np.ascontiguousarray(first[0][:, span]),
+                    np.ascontiguousarray(first[1][:, :, span]))
+        S = np.empty((self.rows, q.size))
+        K = np.empty((self.rows, 2, q.size))
+        batches: Dict[int, list] = {}
+        for j, hit in enumerate(found):
+            batches.setdefault(id(hit[0]), []).append((j, hit))
+        for group in batches.values():
+            at = [j for j, _ in group]
+            index = [hit[2] for _, hit in group]
+            S[:, at] = group[0][1][0][:, index]
+            K[:, :, at] = group[0][1][1][:, :, index]
+        return S, K
+
+    def _covariance_pass(self, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Return s_k (rows, G) and the gains K_k (rows, 2, G) of the filter for q (G,)."""
         count, r = q.shape[0], self._r
         # Every row's noise for every q at once: Q_k + q W_k (rows, G).
         noise = [base[:, None] + weight[:, None] * q for base, weight in zip(self._Q, self._W)]
         n00, n01, n11 = noise
-        x0, x1 = np.full(count, self._x0[0]), np.full(count, self._x0[1])
         p00, p01, p11 = np.full(count, r), np.zeros(count), np.full(count, self._p11)
         S = np.empty((self.rows, count))
+        K = np.empty((self.rows, 2, count))
+        for k, dt in enumerate(self._dt):
+            a = p01 + dt * p11                               # P⁻ = F P Fᵀ + Q + q W
+            m00 = p00 + dt * (p01 + a) + n00[k]
+            m01 = a + n01[k]
+            m11 = p11 + n11[k]
+            s = np.add(m00, r, out=S[k])                     # s = H P⁻ Hᵀ + R
+            gain = K[k]
+            np.divide(m00, s, out=gain[0])                   # K = P⁻ Hᵀ / s
+            k1 = np.divide(m01, s, out=gain[1])
+            keep = r / s                                     # 1 - k0
+            # Joseph form for this optimal K, H = [1, 0] (closed_form.correct):
+            p00, p01, p11 = keep * m00, keep * m01, m11 - k1 * m01
+        return S, K
+
+    def _innovations(self, K: np.ndarray) -> np.ndarray:
+        """Return the innovations y_k (rows, G) of the window's data under the gains K."""
+        count = K.shape[2]
+        state = np.empty((2, count))
+        x0, x1 = state
+        x0.fill(self._x0[0])
+        x1.fill(self._x0[1])
         Y = np.empty((self.rows, count))
         b = self._b
         for k, dt in enumerate(self._dt):
@@ -72,19 +183,9 @@ class WindowLikelihood:
             if b is not None:
                 x0 += b[0][k]
                 x1 += b[1][k]
-            a = p01 + dt * p11                               # P⁻ = F P Fᵀ + Q + q W
-            m00 = p00 + dt * (p01 + a) + n00[k]
-            m01 = a + n01[k]
-            m11 = p11 + n11[k]
-            s = np.add(m00, r, out=S[k])                     # s = H P⁻ Hᵀ + R
             y = np.subtract(self._z[k], x0, out=Y[k])        # y = z - H x⁻
-            k0, k1, keep = m00 / s, m01 / s, r / s           # K = P⁻ Hᵀ / s; 1 - k0
-            x0 += k0 * y                                     # x = x⁻ + K y
-            x1 += k1 * y
-            # Joseph form for this optimal K, H = [1, 0] (closed_form.correct):
-            p00, p01, p11 = keep * m00, keep * m01, m11 - k1 * m01
-        total = np.log(S).sum(axis=0) + (Y * Y / S).sum(axis=0)
-        return -0.5 * (self.rows * LOG_2PI + total)
+            state += K[k] * y                                # x = x⁻ + K y
+        return Y
 
 
 def smallest_finite(values: np.ndarray) -> int:

@@ -114,6 +114,8 @@ class RunningNoiseEstimate:
         self.batched = noise_grid.batched(preset)
         """Search q on grids, many q per filter run (:mod:`~kf_train.batch.noise_grid`);
         False: one q at a time (golden section and bisection), as for other presets."""
+        # The grids' covariance passes, reused by later windows of the same times.
+        self._gains = noise_grid.GainCache()
 
     def __len__(self) -> int:
         """Return how many measurements the window holds."""
@@ -190,7 +192,7 @@ class RunningNoiseEstimate:
         segment = problem.segments[0]
         likelihood = noise_grid.WindowLikelihood(
             self.preset, segment.t_s, segment.z[:, 0], segment.u, R,
-            self.first_velocity_std_mps)
+            self.first_velocity_std_mps, self._gains)
 
         def nll(v: np.ndarray) -> np.ndarray:
             self.evaluations += v.size
