@@ -42,29 +42,72 @@ class GainCache:
     the measured values, only on the times, R, the starting variances and q. A node
     sampled at a fixed rate sees the same times in every window, and its grids repeat
     (the coarse grid whole, the fine grids mostly), so :class:`WindowLikelihood` takes
-    s_k and the gains of a q computed for an earlier window instead of recomputing
-    them: the same numbers from the same operations, so ℓ is bit for bit the same.
-    Each batch is kept as computed; a q points into its batch. At most
-    :data:`MAX_CACHED_Q` q are kept (then all are forgotten): memory stays bounded.
+    s_k and the gains of the q computed for an earlier window (and Σ log s_k of a grid
+    seen before) instead of recomputing them: the same numbers from the same
+    operations, so ℓ is bit for bit the same. The store holds at most
+    :data:`MAX_CACHED_VALUES` rows times q; when full, it is emptied.
     """
 
     def __init__(self):
         """Start empty."""
         self.key: Optional[tuple] = None
-        self.columns: Dict[float, Tuple[np.ndarray, np.ndarray, int]] = {}
-        self.sums: Dict[bytes, np.ndarray] = {}
+        self.capacity = 0
+        """q the store holds, for the rows of the current key."""
+        self._forget()
 
-    def use(self, key: tuple) -> None:
+    def _forget(self) -> None:
+        """Drop everything kept."""
+        self.columns: Dict[float, int] = {}
+        """q -> its column in the store."""
+        self.log_sums: Dict[bytes, np.ndarray] = {}
+        """A grid's bytes -> its Σ_k log s_k."""
+        self._s: Optional[np.ndarray] = None
+        self._k: Optional[np.ndarray] = None
+
+    def use(self, key: tuple, rows: int) -> None:
         """Keep what was computed for windows of ``key`` only (forget it if another)."""
-        if key != self.key or len(self.columns) > MAX_CACHED_Q or len(
-                self.sums) > MAX_CACHED_GRIDS:
-            self.key, self.columns, self.sums = key, {}, {}
+        if key != self.key:
+            self.key = key
+            self.capacity = max(MAX_CACHED_VALUES // max(rows, 1), 1)
+            self._forget()
+        if len(self.log_sums) > MAX_CACHED_GRIDS:
+            self.log_sums = {}
+
+    def missing(self, q: list) -> list:
+        """Return the q (each once) to compute and :meth:`add`; empty the store if full."""
+        columns = self.columns
+        missing = list(dict.fromkeys(v for v in q if v not in columns))
+        if len(columns) + len(missing) > self.capacity:
+            self.columns = {}
+            missing = list(dict.fromkeys(q))
+        return missing
+
+    def add(self, q: list, S: np.ndarray, K: np.ndarray) -> None:
+        """Keep s_k (rows, G) and the gains (rows, 2, G) of the q (G values, new ones)."""
+        if self._s is None:     # allocated once; its pages are touched as it fills
+            self._s = np.empty((S.shape[0], self.capacity))
+            self._k = np.empty((S.shape[0], 2, self.capacity))
+        used, count = len(self.columns), len(q)
+        self._s[:, used:used + count] = S
+        self._k[:, :, used:used + count] = K
+        self.columns.update(zip(q, range(used, used + count)))
+
+    def take(self, q: list) -> Tuple[np.ndarray, np.ndarray]:
+        """Return s_k (rows, G) and the gains (rows, 2, G) of q all kept."""
+        columns = [self.columns[v] for v in q]
+        first = columns[0]
+        if columns == list(range(first, first + len(columns))):   # one block: copied
+            end = first + len(columns)
+            return self._s[:, first:end].copy(), self._k[:, :, first:end].copy()
+        return np.take(self._s, columns, axis=1), np.take(self._k, columns, axis=2)
 
 
-MAX_CACHED_Q = 2048
-"""q values whose covariance pass a :class:`GainCache` keeps (~7 kB each for 300 rows)."""
-MAX_CACHED_GRIDS = 256
-"""Grids whose Σ log s_k a :class:`GainCache` keeps (a grid seen again reuses it)."""
+MAX_CACHED_VALUES = 2 ** 20
+"""Rows times q whose covariance pass a :class:`GainCache` keeps (24 bytes each: 24 MB;
+a 10⁵-measurement replay of the train preset visits ~1500 q of its 300-row windows,
+11 MB)."""
+MAX_CACHED_GRIDS = 1024
+"""Grids whose Σ log s_k a :class:`GainCache` keeps (then forgets)."""
 
 
 class WindowLikelihood:
@@ -96,7 +139,7 @@ class WindowLikelihood:
         self._cache = cache
         if cache is not None:
             cache.use((np.concatenate((dt,) + self._Q + self._W).tobytes(), self._r,
-                       self._p11))
+                       self._p11), self.rows)
 
     def log_likelihoods(self, q: np.ndarray) -> np.ndarray:
         """Return ℓ(q) for every q of ``q`` (G,): −½ Σ_k (log 2π + log s_k + y_k² / s_k)."""
@@ -104,47 +147,25 @@ class WindowLikelihood:
         S, K = self._gains(q)
         Y = self._innovations(K)
         cache = self._cache
-        key = q.tobytes()
-        log_sum = None if cache is None else cache.sums.get(key)
+        log_sum = None if cache is None else cache.log_sums.get(q.tobytes())
         if log_sum is None:
             log_sum = np.log(S).sum(axis=0)
             if cache is not None:
-                cache.sums[key] = log_sum
+                cache.log_sums[q.tobytes()] = log_sum
         total = log_sum + (Y * Y / S).sum(axis=0)
         return -0.5 * (self.rows * LOG_2PI + total)
 
     def _gains(self, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Return s_k (rows, G) and the gains K_k (rows, 2, G): cached or computed."""
+        """Return s_k (rows, G) and the gains K_k (rows, 2, G), reusing the q kept."""
         cache = self._cache
-        if cache is None:
+        if cache is None or q.size > cache.capacity:
             return self._covariance_pass(q)
-        columns = cache.columns
         values = q.tolist()
-        found = [columns.get(v) for v in values]
         # Each q once (the fine grids of grid_search may share points).
-        missing = list(dict.fromkeys(v for v, hit in zip(values, found) if hit is None))
+        missing = cache.missing(values)
         if missing:
-            S, K = self._covariance_pass(np.array(missing))
-            for i, v in enumerate(missing):
-                columns[v] = (S, K, i)
-            found = [columns[v] for v in values]
-        first = found[0]
-        if all(hit[0] is first[0] for hit in found) and [
-                hit[2] for hit in found] == list(range(first[2], first[2] + len(found))):
-            span = slice(first[2], first[2] + len(found))   # one batch, in order
-            return (np.ascontiguousarray(first[0][:, span]),
-                    np.ascontiguousarray(first[1][:, :, span]))
-        S = np.empty((self.rows, q.size))
-        K = np.empty((self.rows, 2, q.size))
-        batches: Dict[int, list] = {}
-        for j, hit in enumerate(found):
-            batches.setdefault(id(hit[0]), []).append((j, hit))
-        for group in batches.values():
-            at = [j for j, _ in group]
-            index = [hit[2] for _, hit in group]
-            S[:, at] = group[0][1][0][:, index]
-            K[:, :, at] = group[0][1][1][:, :, index]
-        return S, K
+            cache.add(missing, *self._covariance_pass(np.array(missing)))
+        return cache.take(values)
 
     def _covariance_pass(self, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """Return s_k (rows, G) and the gains K_k (rows, 2, G) of the filter for q (G,)."""
@@ -155,18 +176,25 @@ class WindowLikelihood:
         p00, p01, p11 = np.full(count, r), np.zeros(count), np.full(count, self._p11)
         S = np.empty((self.rows, count))
         K = np.empty((self.rows, 2, count))
-        for k, dt in enumerate(self._dt):
-            a = p01 + dt * p11                               # P⁻ = F P Fᵀ + Q + q W
-            m00 = p00 + dt * (p01 + a) + n00[k]
-            m01 = a + n01[k]
-            m11 = p11 + n11[k]
-            s = np.add(m00, r, out=S[k])                     # s = H P⁻ Hᵀ + R
-            gain = K[k]
-            np.divide(m00, s, out=gain[0])                   # K = P⁻ Hᵀ / s
-            k1 = np.divide(m01, s, out=gain[1])
-            keep = r / s                                     # 1 - k0
+        # Scratch arrays written in place (no allocation per step); the operations and
+        # their order are those of the formulas in the comments, so are the numbers.
+        a, m00, m01, m11, keep = (np.empty(count) for _ in range(5))
+        add, subtract, multiply, divide = np.add, np.subtract, np.multiply, np.divide
+        for dt, s, gain, n00_k, n01_k, n11_k in zip(self._dt, S, K, n00, n01, n11):
+            add(p01, multiply(p11, dt, a), a)                # a = p01 + dt p11
+            add(p00, multiply(add(p01, a, m00), dt, m00), m00)
+            add(m00, n00_k, m00)                             # P⁻ = F P Fᵀ + Q + q W:
+            add(a, n01_k, m01)                               # m00 = p00 + dt (p01 + a) + n00
+            add(p11, n11_k, m11)
+            add(m00, r, s)                                   # s = H P⁻ Hᵀ + R
+            divide(m00, s, gain[0])                          # K = P⁻ Hᵀ / s
+            k1 = divide(m01, s, gain[1])
+            divide(r, s, keep)                               # 1 - k0
             # Joseph form for this optimal K, H = [1, 0] (closed_form.correct):
-            p00, p01, p11 = keep * m00, keep * m01, m11 - k1 * m01
+            # p00, p01, p11 = keep m00, keep m01, m11 - k1 m01.
+            multiply(keep, m00, p00)
+            multiply(keep, m01, p01)
+            subtract(m11, multiply(k1, m01, p11), p11)
         return S, K
 
     def _innovations(self, K: np.ndarray) -> np.ndarray:
@@ -177,14 +205,16 @@ class WindowLikelihood:
         x0.fill(self._x0[0])
         x1.fill(self._x0[1])
         Y = np.empty((self.rows, count))
+        step, both = np.empty(count), np.empty((2, count))   # scratch: no allocations
+        add, multiply, subtract = np.add, np.multiply, np.subtract
         b = self._b
-        for k, dt in enumerate(self._dt):
-            x0 += dt * x1                                    # x⁻ = F x (+ B u)
+        for k, (dt, z, y, gain) in enumerate(zip(self._dt, self._z, Y, K)):
+            add(x0, multiply(x1, dt, step), x0)              # x⁻ = F x (+ B u)
             if b is not None:
                 x0 += b[0][k]
                 x1 += b[1][k]
-            y = np.subtract(self._z[k], x0, out=Y[k])        # y = z - H x⁻
-            state += K[k] * y                                # x = x⁻ + K y
+            subtract(z, x0, y)                               # y = z - H x⁻
+            add(state, multiply(gain, y, both), state)       # x = x⁻ + K y
         return Y
 
 
