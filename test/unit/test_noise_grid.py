@@ -121,7 +121,8 @@ def _likelihood(name, scenario, t_s, cache=None):
 def test_the_gain_cache_gives_the_same_likelihood_bit_for_bit(name, capacity_q, monkeypatch):
     # The covariance pass kept from earlier windows of the same times (and grids that
     # repeat, overlap, hold a q twice, or one q alone) gives the very numbers computed
-    # afresh; so after the store fills and is emptied (capacity_q q at 299 rows; a grid larger is not kept).
+    # afresh; so after the store fills and is emptied (capacity_q q at 299 rows; a
+    # larger grid is not kept).
     if capacity_q is not None:
         monkeypatch.setattr(noise_grid, 'MAX_CACHED_VALUES', capacity_q * 299)
     cache = GainCache()
