@@ -1,10 +1,16 @@
-"""The fast bag writing paths give rosbags' own bytes: MCAP appender, /diagnostics encoder."""
+"""
+The fast bag writing paths give rosbags' own bytes.
+
+The MCAP appender, the /diagnostics encoder, the regime_probabilities template.
+"""
 
 import random
 
 from kf_train.io.bagio_diagnostics import DiagnosticsEncoder, rosbags_diagnostics
 from kf_train.io.bagio_mcap import CHUNK_BYTES, MessageAppender
+from kf_train.io.bagio_output import MULTIARRAY, OutputBag, regime_message
 from kf_train.io.bagio_types import DIAGNOSTICS, ODOMETRY, POSE, TYPESTORE, VECTOR3
+import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
@@ -115,3 +121,24 @@ def test_diagnostics_stamp_out_of_range_is_a_struct_error():
     import struct
     with pytest.raises(struct.error):
         DiagnosticsEncoder().encode(2 ** 31 * 10 ** 9, '', 0, 'n', 'm', 'h', [])
+
+
+@pytest.mark.parametrize('names', [('stand', 'accelerate', 'cruise', 'brake'), ('one',),
+                                   tuple(f'r{i}' for i in range(20))])
+def test_regime_messages_equal_rosbags(tmp_path, names):
+    """regime_probabilities: the template's bytes are rosbags' (20 regimes: rosbags')."""
+    rng = np.random.default_rng(5)
+    written = []
+    with OutputBag(tmp_path / 'o.mcap', regime_names=names) as out:
+        assert out._regimes.fast == (len(names) <= 14)
+        for k in range(30):
+            p = rng.dirichlet(np.ones(len(names)))
+            if k % 10 == 9:
+                p = np.append(p, 0.5)            # a count that is not the names': as given
+            written.append(p)
+            out.write_regimes(1000 + k, p if k % 2 else p.tolist())
+    with Reader(tmp_path / 'o.mcap') as reader:
+        raws = [bytes(raw) for c, _, raw in reader.messages()
+                if c.topic == '/regime_probabilities']
+    assert raws == [bytes(TYPESTORE.serialize_cdr(regime_message(names, p), MULTIARRAY))
+                    for p in written]
