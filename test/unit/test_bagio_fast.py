@@ -51,15 +51,16 @@ def write(path, messages, fast, compression=None):
     return appender
 
 
-def test_appender_writes_the_bytes_rosbags_writes(tmp_path):
-    """Several chunks, four topics, times out of order: the files are identical."""
+@pytest.mark.parametrize('compression', [None, CompressionMode.STORAGE])
+def test_appender_writes_the_bytes_rosbags_writes(tmp_path, compression):
+    """Several chunks (closed here), four topics, times out of order: the files are identical."""
     messages = records(12_000)
     assert sum(len(data) + 31 for _, _, data in messages) > 2 * CHUNK_BYTES
     (tmp_path / 'a').mkdir()
     (tmp_path / 'b').mkdir()
-    appender = write(tmp_path / 'a' / 'bag', messages, fast=True)
+    appender = write(tmp_path / 'a' / 'bag', messages, fast=True, compression=compression)
     assert appender.fast
-    write(tmp_path / 'b' / 'bag', messages, fast=False)
+    write(tmp_path / 'b' / 'bag', messages, fast=False, compression=compression)
     for name in ('bag.mcap', 'metadata.yaml'):
         fast = (tmp_path / 'a' / 'bag' / name).read_bytes()
         slow = (tmp_path / 'b' / 'bag' / name).read_bytes()
