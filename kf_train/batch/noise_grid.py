@@ -94,18 +94,23 @@ class GainCache:
 
     def take(self, q: list) -> Tuple[np.ndarray, np.ndarray]:
         """Return s_k (rows, G) and the gains (rows, 2, G) of q all kept."""
-        columns = [self.columns[v] for v in q]
-        first = columns[0]
-        if columns == list(range(first, first + len(columns))):   # one block: copied
-            end = first + len(columns)
-            return self._s[:, first:end].copy(), self._k[:, :, first:end].copy()
-        return np.take(self._s, columns, axis=1), np.take(self._k, columns, axis=2)
+        columns = np.array([self.columns[v] for v in q])
+        starts = np.flatnonzero(np.diff(columns) != 1) + 1
+        if starts.size >= MAX_RUNS:          # scattered: gathered column by column
+            return np.take(self._s, columns, axis=1), np.take(self._k, columns, axis=2)
+        # A few runs of adjacent columns (grids computed together): copied as blocks.
+        runs = [(int(columns[a]), int(columns[a]) + b - a) for a, b in zip(
+            [0, *starts.tolist()], [*starts.tolist(), columns.size])]
+        return (np.concatenate([self._s[:, a:b] for a, b in runs], axis=1),
+                np.concatenate([self._k[:, :, a:b] for a, b in runs], axis=2))
 
 
 MAX_CACHED_VALUES = 2 ** 20
 """Rows times q whose covariance pass a :class:`GainCache` keeps (24 bytes each: 24 MB;
 a 10⁵-measurement replay of the train preset visits ~1500 q of its 300-row windows,
 11 MB)."""
+MAX_RUNS = 8
+"""Up to this many runs of adjacent columns, :meth:`GainCache.take` copies blocks."""
 MAX_CACHED_GRIDS = 1024
 """Grids whose Σ log s_k a :class:`GainCache` keeps (then forgets)."""
 
