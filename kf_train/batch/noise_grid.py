@@ -17,6 +17,12 @@ velocity comes from the preset's initial state with σ = first_velocity_std_mps)
 update is the Joseph form for this optimal gain, reduced entry by entry as
 :func:`kf_train.filters.closed_form.correct` does. Its ℓ equals the one-q likelihood to
 rounding (tested).
+
+A run is two passes: the covariance pass (P, s_k and the gains, which do not depend on
+the measured values) and the data pass (the means and innovations). A
+:class:`GainCache` keeps the covariance passes of the q computed for earlier windows
+of the same time steps, which a fixed-rate stream's windows share: a later window
+runs the data pass alone for those q, and ℓ is bit for bit what it was without.
 """
 
 import math
