@@ -192,10 +192,12 @@ class WindowLikelihood:
         a, m00, m01, m11, keep = (np.empty(count) for _ in range(5))
         add, subtract, multiply, divide = np.add, np.subtract, np.multiply, np.divide
         for dt, s, gain, n00_k, n01_k, n11_k in zip(self._dt, S, K, n00, n01, n11):
-            add(p01, multiply(p11, dt, a), a)                # a = p01 + dt p11
+            # P⁻ = F P Fᵀ + Q + q W: with a = p01 + dt p11, m00 = p00 + dt (p01 + a)
+            # + n00, m01 = a + n01, m11 = p11 + n11.
+            add(p01, multiply(p11, dt, a), a)
             add(p00, multiply(add(p01, a, m00), dt, m00), m00)
-            add(m00, n00_k, m00)                             # P⁻ = F P Fᵀ + Q + q W:
-            add(a, n01_k, m01)                               # m00 = p00 + dt (p01 + a) + n00
+            add(m00, n00_k, m00)
+            add(a, n01_k, m01)
             add(p11, n11_k, m11)
             add(m00, r, s)                                   # s = H P⁻ Hᵀ + R
             divide(m00, s, gain[0])                          # K = P⁻ Hᵀ / s
