@@ -17,10 +17,16 @@ velocity comes from the preset's initial state with σ = first_velocity_std_mps)
 update is the Joseph form for this optimal gain, reduced entry by entry as
 :func:`kf_train.filters.closed_form.correct` does. Its ℓ equals the one-q likelihood to
 rounding (tested).
+
+A run is two passes: the covariance pass (P, s_k and the gains, which do not depend on
+the measured values) and the data pass (the means and innovations). A
+:class:`GainCache` keeps the covariance passes of the q computed for earlier windows
+of the same time steps, which a fixed-rate stream's windows share: a later window
+runs the data pass alone for those q, and ℓ is bit for bit what it was without.
 """
 
 import math
-from typing import Optional
+from typing import Dict, Optional, Tuple
 
 from kf_train.batch.noise_likelihood import is_constant_velocity, LOG_2PI, measured_states
 from kf_train.filters import white_noise_integrals
@@ -34,12 +40,99 @@ def batched(preset: Preset) -> bool:
             and measured_states(preset) == (0,))
 
 
+class GainCache:
+    """
+    The covariance pass of earlier windows, per q, for windows that share it.
+
+    The covariances, innovation variances s_k and gains of the filter do not depend on
+    the measured values, only on the times, R, the starting variances and q. A node
+    sampled at a fixed rate sees the same times in every window, and its grids repeat
+    (the coarse grid whole, the fine grids mostly), so :class:`WindowLikelihood` takes
+    s_k and the gains of the q computed for an earlier window (and Σ log s_k of a grid
+    seen before) instead of recomputing them: the same numbers from the same
+    operations, so ℓ is bit for bit the same. The store holds at most
+    :data:`MAX_CACHED_VALUES` rows times q; when full, it is emptied.
+    """
+
+    def __init__(self):
+        """Start empty."""
+        self.key: Optional[tuple] = None
+        self.capacity = 0
+        """q the store holds, for the rows of the current key."""
+        self._forget()
+
+    def _forget(self) -> None:
+        """Drop everything kept."""
+        self.columns: Dict[float, int] = {}
+        """q -> its column in the store."""
+        self.log_sums: Dict[bytes, np.ndarray] = {}
+        """A grid's bytes -> its Σ_k log s_k."""
+        self._s: Optional[np.ndarray] = None
+        self._k: Optional[np.ndarray] = None
+
+    def use(self, key: tuple, rows: int) -> None:
+        """Keep what was computed for windows of ``key`` only (forget it if another)."""
+        if key != self.key:
+            self.key = key
+            self.capacity = max(MAX_CACHED_VALUES // max(rows, 1), 1)
+            self._forget()
+        if len(self.log_sums) > MAX_CACHED_GRIDS:
+            self.log_sums = {}
+
+    def missing(self, q: list) -> list:
+        """Return the q (each once) to compute and :meth:`add`; empty the store if full."""
+        columns = self.columns
+        missing = list(dict.fromkeys(v for v in q if v not in columns))
+        if len(columns) + len(missing) > self.capacity:
+            self.columns = {}
+            missing = list(dict.fromkeys(q))
+        return missing
+
+    def add(self, q: list, S: np.ndarray, K: np.ndarray) -> None:
+        """Keep s_k (rows, G) and the gains (rows, 2, G) of the q (G values, new ones)."""
+        if self._s is None:     # allocated once; its pages are touched as it fills
+            self._s = np.empty((S.shape[0], self.capacity))
+            self._k = np.empty((S.shape[0], 2, self.capacity))
+        used, count = len(self.columns), len(q)
+        self._s[:, used:used + count] = S
+        self._k[:, :, used:used + count] = K
+        self.columns.update(zip(q, range(used, used + count)))
+
+    def take(self, q: list) -> Tuple[np.ndarray, np.ndarray]:
+        """Return s_k (rows, G) and the gains (rows, 2, G) of q all kept."""
+        columns = np.array([self.columns[v] for v in q])
+        starts = np.flatnonzero(np.diff(columns) != 1) + 1
+        if starts.size >= MAX_RUNS:          # scattered: gathered column by column
+            return np.take(self._s, columns, axis=1), np.take(self._k, columns, axis=2)
+        # A few runs of adjacent columns (grids computed together): copied as blocks.
+        runs = [(int(columns[a]), int(columns[a]) + b - a) for a, b in zip(
+            [0, *starts.tolist()], [*starts.tolist(), columns.size])]
+        return (np.concatenate([self._s[:, a:b] for a, b in runs], axis=1),
+                np.concatenate([self._k[:, :, a:b] for a, b in runs], axis=2))
+
+
+MAX_CACHED_VALUES = 2 ** 20
+"""Rows times q whose covariance pass a :class:`GainCache` keeps (24 bytes each: 24 MB;
+a 10⁵-measurement replay of the train preset visits ~1500 q of its 300-row windows,
+11 MB)."""
+MAX_RUNS = 8
+"""Up to this many runs of adjacent columns, :meth:`GainCache.take` copies blocks."""
+MAX_CACHED_GRIDS = 1024
+"""Grids whose Σ log s_k a :class:`GainCache` keeps (then forgets)."""
+
+
 class WindowLikelihood:
     """ℓ(q) of one window for many q at once (see the module docstring)."""
 
     def __init__(self, preset: Preset, t_s: np.ndarray, z: np.ndarray,
-                 u: Optional[np.ndarray], variance_m2: float, first_velocity_std_mps: float):
-        """Take the window: times (N,) [s], positions (N,), controls (N, p) or None, R."""
+                 u: Optional[np.ndarray], variance_m2: float, first_velocity_std_mps: float,
+                 cache: Optional[GainCache] = None):
+        """
+        Take the window: times (N,) [s], positions (N,), controls (N, p) or None, R.
+
+        ``cache`` (optional) holds the covariance pass of earlier windows of the same
+        times, R and first velocity variance, reused for the q it has (bit for bit).
+        """
         dt = np.diff(t_s)
         Q = preset.dynamics.Q_batch(dt)                      # the preset's own Q(dt)
         third, half, one = white_noise_integrals(dt)         # q·W(dt), W's entries
@@ -54,37 +147,88 @@ class WindowLikelihood:
         self._p11 = float(first_velocity_std_mps) ** 2
         self.rows = len(self._dt)
         """Innovations ℓ sums (the rows after the first)."""
+        self._cache = cache
+        if cache is not None:
+            cache.use((np.concatenate((dt,) + self._Q + self._W).tobytes(), self._r,
+                       self._p11), self.rows)
 
     def log_likelihoods(self, q: np.ndarray) -> np.ndarray:
         """Return ℓ(q) for every q of ``q`` (G,): −½ Σ_k (log 2π + log s_k + y_k² / s_k)."""
         q = np.asarray(q, dtype=float)
+        S, K = self._gains(q)
+        Y = self._innovations(K)
+        cache = self._cache
+        log_sum = None if cache is None else cache.log_sums.get(q.tobytes())
+        if log_sum is None:
+            log_sum = np.log(S).sum(axis=0)
+            if cache is not None:
+                cache.log_sums[q.tobytes()] = log_sum
+        total = log_sum + (Y * Y / S).sum(axis=0)
+        return -0.5 * (self.rows * LOG_2PI + total)
+
+    def _gains(self, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Return s_k (rows, G) and the gains K_k (rows, 2, G), reusing the q kept."""
+        cache = self._cache
+        if cache is None or q.size > cache.capacity:
+            return self._covariance_pass(q)
+        values = q.tolist()
+        # Each q once (the fine grids of grid_search may share points).
+        missing = cache.missing(values)
+        if missing:
+            cache.add(missing, *self._covariance_pass(np.array(missing)))
+        return cache.take(values)
+
+    def _covariance_pass(self, q: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """Return s_k (rows, G) and the gains K_k (rows, 2, G) of the filter for q (G,)."""
         count, r = q.shape[0], self._r
         # Every row's noise for every q at once: Q_k + q W_k (rows, G).
         noise = [base[:, None] + weight[:, None] * q for base, weight in zip(self._Q, self._W)]
         n00, n01, n11 = noise
-        x0, x1 = np.full(count, self._x0[0]), np.full(count, self._x0[1])
         p00, p01, p11 = np.full(count, r), np.zeros(count), np.full(count, self._p11)
         S = np.empty((self.rows, count))
+        K = np.empty((self.rows, 2, count))
+        # Scratch arrays written in place (no allocation per step); the operations and
+        # their order are those of the formulas in the comments, so are the numbers.
+        a, m00, m01, m11, keep = (np.empty(count) for _ in range(5))
+        add, subtract, multiply, divide = np.add, np.subtract, np.multiply, np.divide
+        for dt, s, gain, n00_k, n01_k, n11_k in zip(self._dt, S, K, n00, n01, n11):
+            # P⁻ = F P Fᵀ + Q + q W: with a = p01 + dt p11, m00 = p00 + dt (p01 + a)
+            # + n00, m01 = a + n01, m11 = p11 + n11.
+            add(p01, multiply(p11, dt, a), a)
+            add(p00, multiply(add(p01, a, m00), dt, m00), m00)
+            add(m00, n00_k, m00)
+            add(a, n01_k, m01)
+            add(p11, n11_k, m11)
+            add(m00, r, s)                                   # s = H P⁻ Hᵀ + R
+            divide(m00, s, gain[0])                          # K = P⁻ Hᵀ / s
+            k1 = divide(m01, s, gain[1])
+            divide(r, s, keep)                               # 1 - k0
+            # Joseph form for this optimal K, H = [1, 0] (closed_form.correct):
+            # p00, p01, p11 = keep m00, keep m01, m11 - k1 m01.
+            multiply(keep, m00, p00)
+            multiply(keep, m01, p01)
+            subtract(m11, multiply(k1, m01, p11), p11)
+        return S, K
+
+    def _innovations(self, K: np.ndarray) -> np.ndarray:
+        """Return the innovations y_k (rows, G) of the window's data under the gains K."""
+        count = K.shape[2]
+        state = np.empty((2, count))
+        x0, x1 = state
+        x0.fill(self._x0[0])
+        x1.fill(self._x0[1])
         Y = np.empty((self.rows, count))
+        step, both = np.empty(count), np.empty((2, count))   # scratch: no allocations
+        add, multiply, subtract = np.add, np.multiply, np.subtract
         b = self._b
-        for k, dt in enumerate(self._dt):
-            x0 += dt * x1                                    # x⁻ = F x (+ B u)
+        for k, (dt, z, y, gain) in enumerate(zip(self._dt, self._z, Y, K)):
+            add(x0, multiply(x1, dt, step), x0)              # x⁻ = F x (+ B u)
             if b is not None:
                 x0 += b[0][k]
                 x1 += b[1][k]
-            a = p01 + dt * p11                               # P⁻ = F P Fᵀ + Q + q W
-            m00 = p00 + dt * (p01 + a) + n00[k]
-            m01 = a + n01[k]
-            m11 = p11 + n11[k]
-            s = np.add(m00, r, out=S[k])                     # s = H P⁻ Hᵀ + R
-            y = np.subtract(self._z[k], x0, out=Y[k])        # y = z - H x⁻
-            k0, k1, keep = m00 / s, m01 / s, r / s           # K = P⁻ Hᵀ / s; 1 - k0
-            x0 += k0 * y                                     # x = x⁻ + K y
-            x1 += k1 * y
-            # Joseph form for this optimal K, H = [1, 0] (closed_form.correct):
-            p00, p01, p11 = keep * m00, keep * m01, m11 - k1 * m01
-        total = np.log(S).sum(axis=0) + (Y * Y / S).sum(axis=0)
-        return -0.5 * (self.rows * LOG_2PI + total)
+            subtract(z, x0, y)                               # y = z - H x⁻
+            add(state, multiply(gain, y, both), state)       # x = x⁻ + K y
+        return Y
 
 
 def smallest_finite(values: np.ndarray) -> int:

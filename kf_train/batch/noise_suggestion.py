@@ -24,7 +24,7 @@ likelihood-ratio bound] (½χ²₀ + ½χ²₁ at the boundary, as ``kf-train tu
 
 import collections
 import math
-from typing import NamedTuple, Optional, Sequence
+from typing import NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch import noise_grid
 from kf_train.batch.noise_likelihood import (
@@ -87,6 +87,13 @@ def _bisect(f, a: float, b: float, tolerance: float) -> float:
     return 0.5 * (a + b)
 
 
+def _values(values) -> tuple:
+    """Return a row's values as a tuple of numbers (a tuple of floats as it is)."""
+    if type(values) is tuple and all(type(v) is float for v in values):
+        return values                     # the node's rows: no array round trip
+    return tuple(np.ravel(values))
+
+
 class RunningNoiseEstimate:
     """The maximum-likelihood q of the latest ``window`` measurements of a stream."""
 
@@ -114,6 +121,10 @@ class RunningNoiseEstimate:
         self.batched = noise_grid.batched(preset)
         """Search q on grids, many q per filter run (:mod:`~kf_train.batch.noise_grid`);
         False: one q at a time (golden section and bisection), as for other presets."""
+        # The grids' covariance passes, reused by later windows of the same times.
+        self._gains = noise_grid.GainCache()
+        self._bound_values: Optional[Tuple[float, float]] = None
+        self._no_control = preset.dim_u == 0
 
     def __len__(self) -> int:
         """Return how many measurements the window holds."""
@@ -127,13 +138,12 @@ class RunningNoiseEstimate:
         ``u`` is the control of the interval ending at ``stamp_ns``, required exactly
         when the preset has a control input.
         """
-        if (u is None) != (self.preset.dim_u == 0):
+        if (u is None) != self._no_control:
             raise ValueError(f'u must be given exactly when preset {self.preset.name!r} '
                              'has a control input')
         if self._rows and stamp_ns <= self._rows[-1][0]:
             self.clear()                     # a restarted stream: a new window
-        self._rows.append((int(stamp_ns), tuple(np.ravel(z)),
-                           None if u is None else tuple(np.ravel(u))))
+        self._rows.append((int(stamp_ns), _values(z), None if u is None else _values(u)))
 
     def clear(self) -> None:
         """Forget the window (after a reset of the filter)."""
@@ -190,20 +200,26 @@ class RunningNoiseEstimate:
         segment = problem.segments[0]
         likelihood = noise_grid.WindowLikelihood(
             self.preset, segment.t_s, segment.z[:, 0], segment.u, R,
-            self.first_velocity_std_mps)
+            self.first_velocity_std_mps, self._gains)
 
         def nll(v: np.ndarray) -> np.ndarray:
             self.evaluations += v.size
             return -likelihood.log_likelihoods(np.exp(v))
-        threshold = 0.5 * chi2_quantile(1.0 - 2.0 * (1.0 - self.confidence), 1)
-        return noise_grid.grid_search(nll, low, high, threshold,
-                                      math.sqrt(chi2_quantile(self.confidence, 1)))
+        return noise_grid.grid_search(nll, low, high, *self._bounds())
+
+    def _bounds(self) -> Tuple[float, float]:
+        """Return the likelihood-ratio threshold and the Wald z of the confidence (kept)."""
+        if self._bound_values is None:
+            self._bound_values = (
+                0.5 * chi2_quantile(1.0 - 2.0 * (1.0 - self.confidence), 1),
+                math.sqrt(chi2_quantile(self.confidence, 1)))
+        return self._bound_values
 
     def _interval(self, nll, v_hat: float, low: float, high: float,
                   count: int) -> NoiseSuggestion:
         """Return the suggestion at log q = v_hat with its confidence interval."""
         f_hat = nll(v_hat)
-        threshold = 0.5 * chi2_quantile(1.0 - 2.0 * (1.0 - self.confidence), 1)
+        threshold, z = self._bounds()
         drop_at_zero = nll(low) - f_hat
         if drop_at_zero <= threshold:        # q = 0 not rejected: [0, LR bound]
             q = 0.0 if drop_at_zero <= 1e-3 else math.exp(v_hat)
@@ -213,7 +229,6 @@ class RunningNoiseEstimate:
             return NoiseSuggestion(q, 0.0, math.exp(upper), count)
         h = 1e-2                               # curvature of −ℓ in log q (central difference)
         curvature = (nll(v_hat + h) - 2.0 * f_hat + nll(v_hat - h)) / h ** 2
-        z = math.sqrt(chi2_quantile(self.confidence, 1))
         sigma = 1.0 / math.sqrt(curvature) if curvature > 0.0 else math.inf
         return NoiseSuggestion(math.exp(v_hat), math.exp(v_hat - z * sigma),
                                math.exp(v_hat + z * sigma), count)

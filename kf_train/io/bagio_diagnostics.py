@@ -12,9 +12,9 @@ writes it:
   (strings), ``values``: uint32 count, then key and value (strings) of each;
 
 where a string is its UTF-8 length + 1 as a uint32 aligned to 4 bytes (counted from
-after the encapsulation), its bytes and a NUL. The encodings of the keys (a fixed
-set) and of the values (most repeat: counts that do not move, '0.000') are kept
-per alignment, at most :data:`MAX_CACHED_STRINGS`. :class:`DiagnosticsEncoder`
+after the encapsulation), its bytes and a NUL. The encodings of the key/value pairs
+(most repeat: a fixed set of keys, counts that do not move, '0.000') are kept per
+alignment, at most :data:`MAX_CACHED_STRINGS`. :class:`DiagnosticsEncoder`
 checks itself against rosbags' serialization of a sample when it is made, and falls
 back to rosbags for every message if they differ; a test compares them on many
 random statuses.
@@ -31,7 +31,7 @@ _STAMP = struct.Struct('<iI')
 _U32 = struct.Struct('<I').pack
 _PADDING = (b'', b'\x00\x00\x00', b'\x00\x00', b'\x00')   # indexed by position % 4
 MAX_CACHED_STRINGS = 4096
-"""At most this many string encodings are kept (then forgotten): memory stays bounded."""
+"""At most this many key/value encodings are kept (then forgotten): memory stays bounded."""
 _T = TYPESTORE.types
 
 
@@ -88,11 +88,12 @@ class DiagnosticsEncoder:
         cache = self._strings
         if len(cache) > MAX_CACHED_STRINGS:
             cache.clear()
-        for pair in values:
-            for text in pair:
-                encoded = cache.get((text, position & 3))
-                if encoded is None:
-                    encoded = cache[(text, position & 3)] = _string(text, position)
-                parts.append(encoded)
-                position += len(encoded)
+        for key, value in values:
+            encoded = cache.get((key, value, position & 3))
+            if encoded is None:
+                first = _string(key, position)
+                encoded = cache[(key, value, position & 3)] = first + _string(
+                    value, position + len(first))
+            parts.append(encoded)
+            position += len(encoded)
         return b''.join(parts)

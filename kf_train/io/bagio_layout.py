@@ -67,6 +67,10 @@ def set_field(message, path: FieldPath, value) -> None:
 def _locate(message, kind: str, fields: Sequence[Tuple[FieldPath, str]],
             little_endian: bool) -> Optional[Tuple[bytes, Tuple[int, ...]]]:
     """Return the serialized sentinel probe and each field's offset, or None."""
+    forms = [form for _, form in fields]
+    if forms.count('d') > len(_DOUBLE_SENTINELS) or \
+            len(forms) - forms.count('d') > len(_INT_SENTINELS):
+        return None                          # more fields than sentinels: rosbags writes
     probe = copy.deepcopy(message)
     order = '<' if little_endian else '>'
     packed = []

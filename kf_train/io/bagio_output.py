@@ -180,6 +180,10 @@ class OutputBag(AtomicBag):
             _Vector3Stamped(header=_header(0, frame_id), vector=_Vector3(x=0.0, y=0.0, z=0.0)),
             VECTOR3, VECTOR3_FIELDS)
         self._diagnostics = DiagnosticsEncoder()
+        count = len(self.regime_names)
+        self._regimes = PatchTemplate(
+            regime_message(self.regime_names, [0.0] * count), MULTIARRAY,
+            tuple(((('data', i), 'd') for i in range(count)))) if count else None
         # Every message goes through the appender (rosbags' bytes, ~4x faster).
         self._appender = MessageAppender(self._writer)
         self._write_raw = self._appender.write
@@ -231,8 +235,12 @@ class OutputBag(AtomicBag):
 
     def write_regimes(self, record_ns: int, probabilities) -> None:
         """Write a ``regime_probabilities`` (the bag's regime_names, in their order)."""
-        raw = TYPESTORE.serialize_cdr(regime_message(self.regime_names, probabilities),
-                                      MULTIARRAY)
+        values = np.asarray(probabilities, dtype=np.float64).tolist()
+        if len(values) == len(self.regime_names):       # the template's fields
+            raw = self._regimes.fill(*values)
+        else:                                           # (as the node: whatever it has)
+            raw = TYPESTORE.serialize_cdr(regime_message(self.regime_names, values),
+                                          MULTIARRAY)
         self._write_raw(self._connections['regime_probabilities'], record_ns, raw)
         self.counts['regime_probabilities'] += 1
 

@@ -96,7 +96,7 @@ def filter_status(estimator, counts: NodeCounts, activity: Activity, timeout_s: 
     warnings += [nis_warning] if nis_warning else []
     state = estimator.state
     if state is not None:
-        condition = float(np.linalg.cond(state[1]))
+        condition = condition_number(state[1])
         values.append(('covariance_condition', f'{condition:.6g}'))
         if not condition <= MAX_CONDITION:
             warnings.append(f'ill-conditioned covariance (condition {condition:.3g})')
@@ -104,6 +104,14 @@ def filter_status(estimator, counts: NodeCounts, activity: Activity, timeout_s: 
         return FilterStatus('WARN', '; '.join(warnings), values, timeout_warning)
     message = 'ok' if estimator.initialized else 'waiting for measurements'
     return FilterStatus('OK', message, values, timeout_warning)
+
+
+def condition_number(P) -> float:
+    """Return ``np.linalg.cond(P)``: its SVD and division, without its overheads (~8 µs)."""
+    s = np.linalg.svd(P, compute_uv=False).tolist()
+    if s[-1] > 0.0 and math.isfinite(s[0]):
+        return s[0] / s[-1]                 # the same IEEE division as numpy's
+    return float(np.linalg.cond(P))         # singular, non-finite: numpy's conventions
 
 
 def _count_values(estimator, counts: NodeCounts) -> List[Tuple[str, str]]:

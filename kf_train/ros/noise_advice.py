@@ -10,7 +10,8 @@ window, with the node's own linear filter and the R the node uses: the
 recomputes the suggestion only when a window's worth of new measurements came in: a
 suggestion costs two runs of a filter batched over a few hundred q values
 (:mod:`kf_train.batch.noise_grid`; 7-20 ms for 300 rows, where 25-40 runs of one q
-each took 40-60 ms), so at 10 Hz with the default window it is recomputed every 30 s
+each took 40-60 ms; ~3 ms once its covariance passes are reused, for windows of the
+same time steps), so at 10 Hz with the default window it is recomputed every 30 s
 (on the window then in, which the previous suggestion did not see), and each fused
 measurement costs only an append.
 

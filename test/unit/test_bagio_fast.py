@@ -1,10 +1,16 @@
-"""The fast bag writing paths give rosbags' own bytes: MCAP appender, /diagnostics encoder."""
+"""
+The fast bag writing paths give rosbags' own bytes.
+
+The MCAP appender, the /diagnostics encoder, the regime_probabilities template.
+"""
 
 import random
 
 from kf_train.io.bagio_diagnostics import DiagnosticsEncoder, rosbags_diagnostics
 from kf_train.io.bagio_mcap import CHUNK_BYTES, MessageAppender
+from kf_train.io.bagio_output import MULTIARRAY, OutputBag, regime_message
 from kf_train.io.bagio_types import DIAGNOSTICS, ODOMETRY, POSE, TYPESTORE, VECTOR3
+import numpy as np
 import pytest
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
@@ -45,15 +51,16 @@ def write(path, messages, fast, compression=None):
     return appender
 
 
-def test_appender_writes_the_bytes_rosbags_writes(tmp_path):
-    """Several chunks, four topics, times out of order: the files are identical."""
+@pytest.mark.parametrize('compression', [None, CompressionMode.STORAGE])
+def test_appender_writes_the_bytes_rosbags_writes(tmp_path, compression):
+    """Several chunks (closed here), four topics, times out of order: the files are identical."""
     messages = records(12_000)
     assert sum(len(data) + 31 for _, _, data in messages) > 2 * CHUNK_BYTES
     (tmp_path / 'a').mkdir()
     (tmp_path / 'b').mkdir()
-    appender = write(tmp_path / 'a' / 'bag', messages, fast=True)
+    appender = write(tmp_path / 'a' / 'bag', messages, fast=True, compression=compression)
     assert appender.fast
-    write(tmp_path / 'b' / 'bag', messages, fast=False)
+    write(tmp_path / 'b' / 'bag', messages, fast=False, compression=compression)
     for name in ('bag.mcap', 'metadata.yaml'):
         fast = (tmp_path / 'a' / 'bag' / name).read_bytes()
         slow = (tmp_path / 'b' / 'bag' / name).read_bytes()
@@ -115,3 +122,24 @@ def test_diagnostics_stamp_out_of_range_is_a_struct_error():
     import struct
     with pytest.raises(struct.error):
         DiagnosticsEncoder().encode(2 ** 31 * 10 ** 9, '', 0, 'n', 'm', 'h', [])
+
+
+@pytest.mark.parametrize('names', [('stand', 'accelerate', 'cruise', 'brake'), ('one',),
+                                   tuple(f'r{i}' for i in range(20))])
+def test_regime_messages_equal_rosbags(tmp_path, names):
+    """regime_probabilities: the template's bytes are rosbags' (20 regimes: rosbags')."""
+    rng = np.random.default_rng(5)
+    written = []
+    with OutputBag(tmp_path / 'o.mcap', regime_names=names) as out:
+        assert out._regimes.fast == (len(names) <= 14)
+        for k in range(30):
+            p = rng.dirichlet(np.ones(len(names)))
+            if k % 10 == 9:
+                p = np.append(p, 0.5)            # a count that is not the names': as given
+            written.append(p)
+            out.write_regimes(1000 + k, p if k % 2 else p.tolist())
+    with Reader(tmp_path / 'o.mcap') as reader:
+        raws = [bytes(raw) for c, _, raw in reader.messages()
+                if c.topic == '/regime_probabilities']
+    assert raws == [bytes(TYPESTORE.serialize_cdr(regime_message(names, p), MULTIARRAY))
+                    for p in written]

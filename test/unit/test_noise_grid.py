@@ -2,8 +2,8 @@
 
 import math
 
-from kf_train.batch import RunningNoiseEstimate
-from kf_train.batch.noise_grid import batched, FINE, WindowLikelihood
+from kf_train.batch import noise_grid, RunningNoiseEstimate
+from kf_train.batch.noise_grid import batched, FINE, GainCache, WindowLikelihood
 from kf_train.batch.noise_likelihood import NoiseSetting
 from kf_train.presets import load_preset
 from kf_train.sim import car_scenario, white_noise_acceleration_scenario
@@ -107,3 +107,38 @@ def test_presets_the_grids_do_not_run_search_one_q_at_a_time():
     preset = load_preset('cv-position-velocity')
     assert not batched(preset)
     assert not RunningNoiseEstimate(preset, window=300).batched
+
+
+def _likelihood(name, scenario, t_s, cache=None):
+    """Return the WindowLikelihood of a case's 300 rows at times t_s (R 1, σ_v 100)."""
+    preset = load_preset(name)
+    u = scenario.u if preset.dim_u else None
+    return WindowLikelihood(preset, t_s, scenario.z[:, 0], u, 1.0, 100.0, cache)
+
+
+@pytest.mark.parametrize('name', ['train', 'car'])
+@pytest.mark.parametrize('capacity_q', [None, 250])
+def test_the_gain_cache_gives_the_same_likelihood_bit_for_bit(name, capacity_q, monkeypatch):
+    # The covariance pass kept from earlier windows of the same times (and grids that
+    # repeat, overlap, hold a q twice, or one q alone) gives the very numbers computed
+    # afresh; so after the store fills and is emptied (capacity_q q at 299 rows; a
+    # larger grid is not kept).
+    if capacity_q is not None:
+        monkeypatch.setattr(noise_grid, 'MAX_CACHED_VALUES', capacity_q * 299)
+    cache = GainCache()
+    coarse = np.exp(np.linspace(-19.0, 12.0, 63))
+    overlapping = np.concatenate((np.linspace(-2.5, -0.5, 201), np.linspace(-1.0, 0.0, 101)))
+    grids = [coarse, np.exp(np.linspace(-3.0, -1.0, 201)), coarse, np.exp(overlapping),
+             coarse[[7, 3, 3, 50]], coarse[:1], np.exp(np.linspace(-3.0, -1.0, 201))]
+    rng = np.random.default_rng(3)
+    for seed in range(3):
+        scenario = (car_scenario(seed=seed, n_samples=300) if name == 'car'
+                    else white_noise_acceleration_scenario(0.5, 1.0, 300, seed=seed))
+        t_s = scenario.t_s - scenario.t_s[0]
+        if seed == 2:                                       # other times: another key
+            t_s = t_s + np.concatenate(([0.0], rng.uniform(0.0, 1e-3, t_s.size - 1)))
+        cached = _likelihood(name, scenario, t_s, cache)
+        fresh = _likelihood(name, scenario, t_s)
+        for q in grids:
+            assert np.array_equal(cached.log_likelihoods(q), fresh.log_likelihoods(q))
+    assert len(cache.columns) <= cache.capacity

@@ -1,13 +1,15 @@
 """The estimator node's /diagnostics status, built without ROS (kf_train.ros.diagnostics)."""
 
 import dataclasses
+import math
 
 from kf_train.estimator import (
     CONTROL_REJECTION_REASONS, NS_PER_S, REJECTION_REASONS, RESET_REASONS, StreamEstimator)
 from kf_train.filters import chi2_mean_bounds
 from kf_train.ros.diagnostics import (
-    Activity, CONSISTENCY_CONFIDENCE, filter_status, nis_bounds, NodeCounts)
+    Activity, condition_number, CONSISTENCY_CONFIDENCE, filter_status, nis_bounds, NodeCounts)
 from kf_train.ros.estimator_params import DEFAULTS
+import numpy as np
 import pytest
 
 COUNTS = NodeCounts(received=7, fused=5, rejected=2, set_state_refused=1,
@@ -118,3 +120,18 @@ def test_filter_specific_values():
 def test_nis_bounds_are_the_chi2_bounds():
     """The cached bounds are chi2_mean_bounds at 99%."""
     assert nis_bounds(30, 2) == chi2_mean_bounds(30, 2, 0.99)
+
+
+def test_condition_number_is_numpys_bit_for_bit():
+    """condition_number(P) = np.linalg.cond(P), also singular, 1x1, 6x6 and non-finite."""
+    rng = np.random.default_rng(4)
+    matrices = [np.zeros((2, 2)), np.diag([1.0, 0.0]), np.array([[2.5]]),
+                np.array([[np.inf, 0.0], [0.0, 1.0]])]
+    for n in (1, 2, 2, 2, 6):
+        for _ in range(200):
+            A = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-6, 6)
+            matrices.append(A @ A.T)
+    for P in matrices:
+        expected = float(np.linalg.cond(P))
+        got = condition_number(P)
+        assert got == expected or (math.isnan(got) and math.isnan(expected)), P
