@@ -41,6 +41,7 @@ from typing import Callable, Iterator, List, NamedTuple, Optional
 
 from kf_train.cli.progress import counted
 from kf_train.cli.replay import check_file_target, write_atomic
+from kf_train.cli.replay_engines import collector_frozen
 from kf_train.estimator import StreamEstimator
 from kf_train.io import bagio, bagio_output, csvio
 from kf_train.ros import diagnostics as ros_diagnostics
@@ -241,7 +242,9 @@ def bag_main(args) -> int:
     """Run the bag replay for parsed ``kf-train replay`` arguments; return the exit code."""
     try:
         config = load_config(args.params_file or [], args.parameter or [])
-        summary = replay_bag(args.input, args.output, config, args.topic, args.control_topic)
+        with collector_frozen():
+            summary = replay_bag(args.input, args.output, config, args.topic,
+                                 args.control_topic)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return 1
