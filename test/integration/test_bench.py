@@ -67,9 +67,11 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
                                      for line in replays), replays
     assert sum('where the CPU goes' in line and 'filter' in line for line in bags) == 2
     assert any('flat:' in line for line in bags), bags
-    # Row 10: the rail IMM's cost beside the KF's, and one target row per run (2 runs).
+    # Row 10: the rail IMM's cost (exact grid, jittered stamps) beside the KF's, and one
+    # target row per run (2 runs).
     rail = [line for line in table if line.startswith(('| 10a |', '| 10b |'))]
-    assert len([line for line in rail if '× the closed-form KF' in line]) == 3, rail
+    assert len([line for line in rail if '× the closed-form KF' in line]) == 4, rail
+    assert sum('jittered' in line for line in rail) == 1, rail
     runs = [line for line in rail if 'unseen run' in line]
     assert len(runs) == 2 and all('2σ coverage' in line and 'the best (' in line
                                   for line in runs), runs
