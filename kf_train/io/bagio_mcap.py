@@ -7,26 +7,20 @@ on two objects), more than the filter step of a replay that writes three message
 measurement. :class:`MessageAppender` writes the same MCAP Message record (opcode
 0x05: channel id, sequence 0, log and publish time both the record time, the data)
 into rosbags' own open chunk with one ``struct`` call, keeps the chunk's message
-index as rosbags does, closes a chunk at the same size rosbags does (more than 2^20
-bytes) with :func:`close_chunk` (rosbags' ``close_chunk`` record for record, but each
-message index packed in one call: rosbags' writes every entry by two small writes,
-1.4 ms a chunk of ~1400 Odometry messages against 0.2 ms here), and hands the counts
-and time bounds to the writer and its storage in bulk (:meth:`MessageAppender.flush`,
-called before the writer is closed). Everything else (schemas, channels, the last
-chunk, summary records, metadata.yaml) is rosbags' own code, so the file is byte for
-byte the one rosbags writes for the same calls (a test compares them, chunks
-compressed or not).
+index as rosbags does, closes a chunk by rosbags' own ``close_chunk`` at the same
+size rosbags does (more than 2^20 bytes), and hands the counts and time bounds to
+the writer and its storage in bulk (:meth:`MessageAppender.flush`, called before
+the writer is closed). Everything else (schemas, channels, chunk and summary
+records, metadata.yaml) is rosbags' own code, so the file is byte for byte the one
+rosbags writes for the same calls (a test compares them).
 
 The appender leans on rosbags' MCAP writer internals (``chunk``, ``channel_stats``,
-``chunks``, ``compressor``; rosbags is pinned in constraints.txt). When the open storage is not
+``close_chunk``; rosbags is pinned in constraints.txt). When the open storage is not
 the MCAP writer it knows (another rosbags version, another storage, per-message
 compression), :attr:`MessageAppender.fast` is False and every message goes through
 ``Writer.write``.
 """
 
-from collections import defaultdict
-from io import BytesIO
-import itertools
 import struct
 from typing import Dict, Union
 
@@ -58,8 +52,7 @@ def _supported(writer: Writer) -> bool:
     chunk = getattr(storage, 'chunk', None)
     return all(hasattr(chunk, name) for name in ('bio', 'msgs', 'message_start_time',
                                                  'message_end_time')) and all(
-        hasattr(storage, name) for name in ('channel_stats', 'close_chunk', 'bio', 'chunks',
-                                            'compressor', 'compression',
+        hasattr(storage, name) for name in ('channel_stats', 'close_chunk',
                                             'message_start_time', 'message_end_time'))
 
 
@@ -108,7 +101,7 @@ class MessageAppender:
             self._chunk_end = timestamp
         if offset > CHUNK_BYTES:
             self._sync_chunk()
-            close_chunk(self._storage)
+            self._storage.close_chunk()
             self._take_chunk()
 
     def _sync_chunk(self) -> None:
@@ -135,44 +128,3 @@ class MessageAppender:
             writer.max_timestamp = max(writer.max_timestamp, self._end)
         self._counts = {}
         self._start, self._end = NO_START, 0
-
-
-_U32 = struct.Struct('<I').pack
-_U64 = struct.Struct('<Q').pack
-_CHUNK_HEAD = struct.Struct('<QQQI').pack             # start, end, size, crc (0)
-
-
-def _record(opcode: int, body: bytes) -> bytes:
-    """Return an MCAP record: opcode, length, body."""
-    return bytes((opcode,)) + _U64(len(body)) + body
-
-
-def close_chunk(storage) -> None:
-    """
-    Close the storage's pending chunk as rosbags' ``McapWriter.close_chunk`` does.
-
-    The same records (Chunk, one MessageIndex per channel, the ChunkIndex kept for the
-    summary) in the same bytes, each packed in one call: rosbags writes every index
-    entry by two small writes (~1 µs a message). A test compares the files.
-    """
-    chunk, bio = storage.chunk, storage.bio
-    size = chunk.bio.tell()
-    compressed = storage.compressor(chunk.bio.getvalue())
-    compression = storage.compression.encode()
-    described = _U32(len(compression)) + compression + _U64(len(compressed))
-    chunk_start = bio.tell()
-    bio.write(_record(0x06, _CHUNK_HEAD(chunk.message_start_time, chunk.message_end_time,
-                                        size, 0) + described + compressed))
-    chunk_end = bio.tell()
-    offsets = []
-    for cid, messages in chunk.msgs.items():
-        offsets.append(struct.pack('<HQ', cid, bio.tell()))
-        bio.write(_record(0x07, struct.pack(f'<HI{2 * len(messages)}Q', cid, 16 * len(messages),
-                                            *itertools.chain.from_iterable(messages))))
-    index = BytesIO()
-    index.write(struct.pack('<QQQQI', chunk.message_start_time, chunk.message_end_time,
-                            chunk_start, chunk_end - chunk_start, 10 * len(offsets)))
-    index.write(b''.join(offsets) + _U64(bio.tell() - chunk_end) + described
-                + _U64(size))
-    storage.chunks.append(index)
-    storage.chunk = type(chunk)(NO_START, 0, BytesIO(), defaultdict(list))

@@ -53,7 +53,7 @@ def write(path, messages, fast, compression=None):
 
 @pytest.mark.parametrize('compression', [None, CompressionMode.STORAGE])
 def test_appender_writes_the_bytes_rosbags_writes(tmp_path, compression):
-    """Several chunks (closed here), four topics, times out of order: the files are identical."""
+    """Several chunks, four topics, times out of order: the files are identical."""
     messages = records(12_000)
     assert sum(len(data) + 31 for _, _, data in messages) > 2 * CHUNK_BYTES
     (tmp_path / 'a').mkdir()
