@@ -24,7 +24,7 @@ likelihood-ratio bound] (½χ²₀ + ½χ²₁ at the boundary, as ``kf-train tu
 
 import collections
 import math
-from typing import NamedTuple, Optional, Sequence, Tuple
+from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch import noise_grid
 from kf_train.batch.noise_likelihood import (
@@ -123,7 +123,9 @@ class RunningNoiseEstimate:
         False: one q at a time (golden section and bisection), as for other presets."""
         # The grids' covariance passes, reused by later windows of the same times.
         self._gains = noise_grid.GainCache()
-        self._bound_values: Optional[Tuple[float, float]] = None
+        # The likelihood-ratio threshold and the Wald z of the confidence.
+        self._threshold = 0.5 * chi2_quantile(1.0 - 2.0 * (1.0 - self.confidence), 1)
+        self._z = math.sqrt(chi2_quantile(self.confidence, 1))
         self._no_control = preset.dim_u == 0
 
     def __len__(self) -> int:
@@ -205,21 +207,13 @@ class RunningNoiseEstimate:
         def nll(v: np.ndarray) -> np.ndarray:
             self.evaluations += v.size
             return -likelihood.log_likelihoods(np.exp(v))
-        return noise_grid.grid_search(nll, low, high, *self._bounds())
-
-    def _bounds(self) -> Tuple[float, float]:
-        """Return the likelihood-ratio threshold and the Wald z of the confidence (kept)."""
-        if self._bound_values is None:
-            self._bound_values = (
-                0.5 * chi2_quantile(1.0 - 2.0 * (1.0 - self.confidence), 1),
-                math.sqrt(chi2_quantile(self.confidence, 1)))
-        return self._bound_values
+        return noise_grid.grid_search(nll, low, high, self._threshold, self._z)
 
     def _interval(self, nll, v_hat: float, low: float, high: float,
                   count: int) -> NoiseSuggestion:
         """Return the suggestion at log q = v_hat with its confidence interval."""
         f_hat = nll(v_hat)
-        threshold, z = self._bounds()
+        threshold, z = self._threshold, self._z
         drop_at_zero = nll(low) - f_hat
         if drop_at_zero <= threshold:        # q = 0 not rejected: [0, LR bound]
             q = 0.0 if drop_at_zero <= 1e-3 else math.exp(v_hat)

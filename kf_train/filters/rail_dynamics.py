@@ -37,29 +37,33 @@ _NOISE_TERMS = 34
 
 def _phi(x) -> Tuple:
     """
-    Return φ1 = 1 - e^-x, φ2 = x - φ1 and φ3 = x²/2 - φ2 for x >= 0 (floats or arrays).
+    Return φ1 = 1 - e^-x, φ2 = x - φ1 and φ3 = x²/2 - φ2 for x >= 0 (a float or an array).
 
     φ2 ≈ x²/2 and φ3 ≈ x³/6 for small x, where the differences cancel; there the
-    Taylor series Σ (-1)^k x^k / k! (k >= 2, resp. k >= 3) is used instead.
+    Taylor series Σ (-1)^k x^k / k! (k >= 2, resp. k >= 3) is used instead. A float
+    (one dt, a new one at every step when stamps jitter) is computed as floats.
     """
-    if type(x) is float:  # one dt (a new one at every step when stamps jitter): floats
-        phi1 = -math.expm1(-x)
-        if x < _SERIES_BELOW:
-            powers = x ** _PHI_POWERS
-            return phi1, float(powers.dot(_PHI2_SERIES)), float(powers.dot(_PHI3_SERIES))
-        phi2 = x - phi1
-        return phi1, phi2, x * x / 2.0 - phi2
-    x = np.asarray(x, dtype=float)
-    phi1 = -np.expm1(-x)
+    scalar = type(x) is float
+    if not scalar:
+        x = np.asarray(x, dtype=float)
+    phi1 = -math.expm1(-x) if scalar else -np.expm1(-x)
     phi2 = x - phi1
     phi3 = x * x / 2.0 - phi2
+    if scalar:
+        return (phi1,) + (_series(x) if x < _SERIES_BELOW else (phi2, phi3))
     small = x < _SERIES_BELOW
     if np.any(small):
-        powers = x[small][:, None] ** _PHI_POWERS           # (k, 12): x^0 ... x^11
         phi2 = np.where(small, 0.0, phi2)
         phi3 = np.where(small, 0.0, phi3)
-        phi2[small], phi3[small] = powers.dot(_PHI2_SERIES), powers.dot(_PHI3_SERIES)
+        phi2[small], phi3[small] = _series(x[small])
     return phi1, phi2, phi3
+
+
+def _series(x) -> Tuple:
+    """Return the Taylor series of φ2 and φ3 at x (a float or an array), as x is."""
+    powers = np.power.outer(x, _PHI_POWERS)                # x^0 ... x^11 (last axis)
+    phi2, phi3 = powers.dot(_PHI2_SERIES), powers.dot(_PHI3_SERIES)
+    return (float(phi2), float(phi3)) if type(x) is float else (phi2, phi3)
 
 
 def relaxation_transition(dt_s, tau_s: float) -> np.ndarray:
