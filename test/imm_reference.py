@@ -16,9 +16,9 @@ from kf_train.filters.imm import (
     check_transition_matrix, IMMState, make_state, RateTransition)
 from kf_train.filters.kalman import UpdateResult
 from kf_train.filters.models import LinearModel
+from kf_train.filters.rail_dynamics import _phi, relaxation_noise, relaxation_transition
 from kf_train.filters.rail_model import (
-    _phi, ACCELERATE, BRAKE, CRUISE, DIM_X, MODE_NAMES, RailModelParameters,
-    relaxation_noise, relaxation_transition, STAND, STATE_NAMES)
+    ACCELERATE, BRAKE, CRUISE, DIM_X, MODE_NAMES, RailModelParameters, STAND, STATE_NAMES)
 from kf_train.filters.validation import as_covariance, as_duration, as_vector
 import numpy as np
 

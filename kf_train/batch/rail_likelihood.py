@@ -94,7 +94,7 @@ class _UnitModels:
     """
     The regimes' F(dt) and their Q(dt) per unit of each noise, from the node's RailModel.
 
-    Q is linear in the noises (RailModel's moving Q is relaxation_noise(dt, τ, q_a, q_ℓ)
+    Q is linear in the noises (RailModel's moving Q is RelaxationNoise(τ, q_a, q_ℓ)(dt)
     = q_a·Q(1, 0) + q_ℓ·Q(0, 1), plus capability_noise·dt on A and B; stand's is
     stand_noise·dt on p and capability_noise·dt on A and B), so the RailModel of each
     unit noise gives the unit matrices, and a setting's Q is their weighted sum.

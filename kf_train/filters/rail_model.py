@@ -47,8 +47,8 @@ from typing import Dict, Tuple
 from kf_train.filters import imm_stack
 from kf_train.filters.imm import IMM, IMMFilter, IMMState, RateTransition
 from kf_train.filters.models import LinearModel
-from kf_train.filters.rail_dynamics import (  # noqa: F401 (relaxation_noise: public here)
-    _phi, relaxation_noise, relaxation_rows, relaxation_transition, RelaxationNoise)
+from kf_train.filters.rail_dynamics import (
+    _phi, relaxation_rows, relaxation_transition, RelaxationNoise)
 from kf_train.filters.rail_mixing import EntryGather
 from kf_train.filters.rail_stop import StopFinder
 import numpy as np

@@ -2,7 +2,7 @@
 Where a regime's mean path stops: the rail model's no-reversal prediction.
 
 A moving regime's mean follows ṗ = v, v̇ = a, ȧ = (ℓ - a)/τ, ℓ̇ = 0 (its transition
-F(t), :func:`kf_train.filters.rail_model.relaxation_transition`). A train does not
+F(t), :func:`kf_train.filters.rail_dynamics.relaxation_transition`). A train does not
 reverse, so a prediction whose mean velocity reaches 0 within the horizon is held where
 it stopped. The first root is bracketed on a 41-point grid over the horizon, then on a
 41-point grid within the bracketing step (to horizon/1600), as the rail model always

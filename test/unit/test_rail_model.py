@@ -5,10 +5,11 @@ import math
 
 from hypothesis import given, settings, strategies as st
 from kf_train.filters.imm import check_transition_matrix, IMMState, make_state
-from kf_train.filters.rail_dynamics import RelaxationNoise
+from kf_train.filters.rail_dynamics import (
+    _phi, relaxation_noise, relaxation_transition, RelaxationNoise)
 from kf_train.filters.rail_model import (
-    _phi, ACCELERATE, BRAKE, CRUISE, make_rail_filter, MODE_NAMES, RailModel,
-    RailModelParameters, relaxation_noise, relaxation_transition, STAND)
+    ACCELERATE, BRAKE, CRUISE, make_rail_filter, MODE_NAMES, RailModel, RailModelParameters,
+    STAND)
 from kf_train.filters.validation import as_covariance, as_matrix
 from kf_train.presets.rail import (
     load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_PATH)
