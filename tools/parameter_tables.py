@@ -1,13 +1,13 @@
 """
 Print, check or write the documents generated from the nodes' parameter tables.
 
-    python tools/parameter_tables.py            # print the README's parameter tables
+    python tools/parameter_tables.py            # print docs/ros.md's parameter tables
     python tools/parameter_tables.py --config   # print config/kf_train.yaml
-    python tools/parameter_tables.py --write    # write both into README.md and config/
+    python tools/parameter_tables.py --write    # write both into docs/ros.md and config/
     python tools/parameter_tables.py --check    # exit 1 if either file differs
 
 The tables are kf_train/ros/simulator_params.py and kf_train/ros/estimator_params.py;
-test/unit/test_param_tables.py keeps README.md and config/kf_train.yaml equal to them.
+test/unit/test_param_tables.py keeps docs/ros.md and config/kf_train.yaml equal to them.
 """
 
 import os
@@ -17,12 +17,12 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from kf_train.ros import estimator_params, simulator_params  # noqa: E402
-from kf_train.ros.param_docs import CONFIG_HEADER, params_file, readme_tables  # noqa: E402
+from kf_train.ros.param_docs import CONFIG_HEADER, params_file, reference_tables  # noqa: E402
 
 TABLES = (simulator_params.PARAMETERS, estimator_params.PARAMETERS)
-README = os.path.join(REPO, 'README.md')
+REFERENCE = os.path.join(REPO, 'docs', 'ros.md')
 CONFIG = os.path.join(REPO, 'config', 'kf_train.yaml')
-# The tables sit between the first node's heading and the next section.
+# The tables sit between the first node's heading and the next section (or the end).
 START = '### `simulator`\n'
 END = '\n## '
 
@@ -32,11 +32,12 @@ def config_text() -> str:
     return params_file([(table, None) for table in TABLES], CONFIG_HEADER)
 
 
-def readme_text(current: str) -> str:
-    """Return ``current`` README text with its parameter tables regenerated."""
+def reference_text(current: str) -> str:
+    """Return ``current`` docs/ros.md text with its parameter tables regenerated."""
     start = current.index(START)
-    end = current.index(END, start)
-    return current[:start] + readme_tables(TABLES) + current[end:]
+    end = current.find(END, start)
+    end = len(current) if end < 0 else end
+    return current[:start] + reference_tables(TABLES) + current[end:]
 
 
 def _read(path: str) -> str:
@@ -50,7 +51,7 @@ def main(argv) -> int:
     if argv[1:] == ['--config']:
         sys.stdout.write(config_text())
     elif argv[1:] in (['--write'], ['--check']):
-        wanted = {README: readme_text(_read(README)), CONFIG: config_text()}
+        wanted = {REFERENCE: reference_text(_read(REFERENCE)), CONFIG: config_text()}
         stale = [path for path, text in wanted.items() if _read(path) != text]
         if argv[1] == '--check':
             for path in stale:
@@ -62,7 +63,7 @@ def main(argv) -> int:
                 stream.write(wanted[path])
             print(f'wrote {os.path.relpath(path, REPO)}')
     elif len(argv) == 1:
-        sys.stdout.write(readme_tables(TABLES))
+        sys.stdout.write(reference_tables(TABLES))
     else:
         print(__doc__, file=sys.stderr)
         return 2

@@ -2,7 +2,8 @@
 The controls buffer, and predictions split at control stamps.
 
 A control stamped t_k is the input applied over the interval (t_{k-1}, t_k] that
-*ends* at t_k (SEEDS.md); the latest value received for a stamp is kept. See
+*ends* at t_k (the seeds' convention: docs/presets.md); the latest value received
+for a stamp is kept. See
 :mod:`kf_train.estimator.estimator` for how the estimator uses them.
 """
 

@@ -54,7 +54,8 @@ Controls (presets with a control input: ``car``, acceleration [m/s²]; ``robot``
 velocity [m/s]), fed by :meth:`StreamEstimator.add_control`:
 
 * A control stamped t_k is the input applied over the interval (t_{k-1}, t_k] that
-  *ends* at t_k (SEEDS.md). The latest value received for a stamp is kept.
+  *ends* at t_k (the seeds' convention: docs/presets.md). The latest value received
+  for a stamp is kept.
 * A prediction from t_a to t_b is split at every control stamp inside (t_a, t_b):
   each piece uses the control of the interval it lies in. The last piece uses the
   control stamped t_b; if that has not arrived, the control of the interval that

@@ -3,7 +3,7 @@ Floor 4, the ROS adapters: the only place that imports rclpy or message packages
 
 ``messages`` converts between ROS messages and the core's numbers; ``param_spec`` is
 the pure parameter table (one ParamSpec per parameter: declaration, validation,
-config yaml, README, ``ros2 param describe``), ``simulator_params`` and
+config yaml, docs/ros.md, ``ros2 param describe``), ``simulator_params`` and
 ``estimator_params`` the two nodes' tables, ``param_docs`` their text, ``parameters``
 declares them on a node; ``diagnostics`` builds the estimator's status (pure);
 ``session`` is what the estimator node does with its input (pure, shared with the bag

@@ -13,13 +13,14 @@ resets) is :mod:`kf_train.ros.session`, shared with ``kf-train replay BAG``; thi
 publishes. (An output
 topic without subscribers is not published at all: cheaper, and the same to anyone.)
 
-Presets (parameter ``preset``, fixed at start-up): the filter of a seed, ``train``
-by default (seed 000). The preset brings the model, ``initial_state``,
+Presets (parameter ``preset``, fixed at start-up): ``rail`` by default (a real train
+in regimes stand/accelerate/cruise/brake, an IMM; docs/rail.md), or the filter of a
+seed (``train`` is seed 000). The preset brings the model, ``initial_state``,
 ``initial_covariance``, ``nominal_period_s`` and ``horizon_s``: those parameters
 default to the preset's values (``ros2 param get`` shows the values in use), and a
 value given explicitly (``-p``, a params file) overrides them. So a params file that
-lists them (as config/kf_train.yaml does, with the train's values) overrides them:
-leave them out for another preset. ``process_noise_density`` adds white-noise
+lists them (as config/kf_train.yaml does, with the rail preset's values) overrides
+them: leave them out for another preset. ``process_noise_density`` adds white-noise
 acceleration to the preset's own process noise (constant-velocity presets only).
 
 * ``car``, ``car-exact`` (seed 001): subscribes ``control``
@@ -110,7 +111,7 @@ filter needs ``process_noise_density`` > 0 on the train (Q = 0 otherwise: resamp
 particles never spread again); ``pf`` does not (its move spreads them).
 
 Parameters: each is declared once, in :data:`kf_train.ros.estimator_params.PARAMETERS`
-(name, type, default, range or choices, live or not, unit, description); the README's
+(name, type, default, range or choices, live or not, unit, description); docs/ros.md's
 table and config/kf_train.yaml are generated from it. Every parameter can be changed at
 runtime; a change is validated as a whole and refused with a reason (the old values
 stay), except ``preset``, ``filter``, the filter's tuning and the QoS, which are

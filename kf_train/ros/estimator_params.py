@@ -3,7 +3,7 @@ The ``estimator`` node's parameters, each declared once, and the settings they m
 
 Pure (no rclpy, no message package). :data:`PARAMETERS` is the one table: the node
 declares it (:mod:`kf_train.ros.parameters`), ``ros2 param describe`` shows it, and
-config/kf_train.yaml and the README's tables are generated from it
+config/kf_train.yaml and docs/ros.md's tables are generated from it
 (tools/parameter_tables.py). :func:`estimator_config` turns parameter values into what
 the node runs, checking them as the node does, at start-up and on every change; offline
 tools call :func:`load_estimator_config` with a params file and ``-p`` overrides and get

@@ -1,7 +1,7 @@
 """
-Documents generated from the parameter tables: the README's tables and a params file.
+Documents generated from the parameter tables: the reference's tables and a params file.
 
-Pure (no rclpy). tools/parameter_tables.py writes README.md's parameter tables and
+Pure (no rclpy). tools/parameter_tables.py writes docs/ros.md's parameter tables and
 config/kf_train.yaml with these functions, and a unit test keeps both equal to what
 they return; ``kf-train tune`` can write a params file with :func:`params_file`.
 """
@@ -30,7 +30,7 @@ _WIDTH = 92
 
 
 def markdown_table(table: ParamTable) -> str:
-    """Return the README table of a node's parameters, sorted by name."""
+    """Return the Markdown table of a node's parameters, sorted by name."""
     defaults = table.defaults()
     lines = ['| parameter | default | unit | range | live | description |',
              '|---|---|---|---|---|---|']
@@ -42,8 +42,8 @@ def markdown_table(table: ParamTable) -> str:
     return '\n'.join(lines) + '\n'
 
 
-def readme_tables(tables: Sequence[ParamTable]) -> str:
-    """Return the README's parameter section body: one headed table per node."""
+def reference_tables(tables: Sequence[ParamTable]) -> str:
+    """Return docs/ros.md's parameter section body: one headed table per node."""
     return '\n'.join(f'### `{table.node}`\n\n{markdown_table(table)}' for table in tables)
 
 

@@ -45,11 +45,11 @@ that compare stamps with their clock (the estimator's future-stamp check) then n
 ``use_sim_time`` and this node's ``publish_clock``.
 
 Controls: sample k's control is the input applied over (t_{k-1}, t_k], the interval
-that ends at it (SEEDS.md); it is stamped t_k, in the body frame ``child_frame_id``,
-and published just *before* the measurement stamped t_k. It is never faulty, but
-carries the jumped stamp of a clock jump (it comes from the same clock). A seed's
-cv-position run is the ``train`` scenario with rate_hz 1, true_velocity 2 and
-initial_position -1 (x = 2t − 1).
+that ends at it (the seeds' convention: docs/presets.md); it is stamped t_k, in the
+body frame ``child_frame_id``, and published just *before* the measurement stamped
+t_k. It is never faulty, but carries the jumped stamp of a clock jump (it comes from
+the same clock). A seed's cv-position run is the ``train`` scenario with rate_hz 1,
+true_velocity 2 and initial_position -1 (x = 2t − 1).
 
 Fault injection (all off by default, seeded from ``seed`` through a generator of
 their own, so the measurement noise is the same with and without faults; see

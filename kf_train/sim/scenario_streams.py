@@ -4,7 +4,8 @@ The seeds' 1-D scenarios as sample-by-sample streams, for the simulator node.
 :mod:`kf_train.sim.scenarios` draws a whole series at once; a live simulator needs
 one sample at a time, for as long as it runs. These streams follow the same truth
 models. Sample k (k = 1, 2, …) is taken at t_k = k·dt (dt = 1 / rate_hz) and carries
-the control of the interval (t_{k-1}, t_k] that ends at it (SEEDS.md), or None.
+the control of the interval (t_{k-1}, t_k] that ends at it (the seeds' convention:
+docs/presets.md), or None.
 
 * ``train`` (seed 000): :class:`kf_train.sim.simulation.TrainSimulation`,
   x(t) = x0 + v·t.

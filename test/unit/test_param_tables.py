@@ -17,7 +17,7 @@ from kf_train.estimator import EstimatorSettings, preset_defaults
 from kf_train.ros import estimator_params, simulator_params
 from kf_train.ros.estimator_params import (
     changed_config, DEFAULTS, estimator_config, load_estimator_config, NodeOptions)
-from kf_train.ros.param_docs import CONFIG_HEADER, params_file, readme_tables
+from kf_train.ros.param_docs import CONFIG_HEADER, params_file, reference_tables
 from kf_train.ros.param_spec import (
     node_parameters, ParameterError, ParamSpec, parse_override, parse_value,
     read_params_file, ros_scalar, yaml_scalar)
@@ -28,7 +28,7 @@ import yaml
 
 REPO = os.path.join(os.path.dirname(os.path.abspath(__file__)), '..', '..')
 CONFIG = os.path.join(REPO, 'config', 'kf_train.yaml')
-README = os.path.join(REPO, 'README.md')
+REFERENCE = os.path.join(REPO, 'docs', 'ros.md')
 TABLES = (simulator_params.PARAMETERS, estimator_params.PARAMETERS)
 ESTIMATOR = estimator_params.PARAMETERS
 
@@ -100,9 +100,9 @@ def test_the_config_file_is_generated_from_the_tables():
     assert _read(CONFIG) == params_file([(table, None) for table in TABLES], CONFIG_HEADER)
 
 
-def test_the_readme_tables_are_generated_from_the_tables():
+def test_the_reference_tables_are_generated_from_the_tables():
     """README.md holds exactly the tables the parameter tables make."""
-    assert readme_tables(TABLES) in _read(README)
+    assert reference_tables(TABLES) in _read(README)
 
 
 def test_the_config_file_reads_the_same_in_rcl_and_pyyaml_and_gives_the_defaults():

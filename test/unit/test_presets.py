@@ -4,7 +4,8 @@ Tests of kf_train.presets.loader: every preset against its seed, filterpy and it
 Each ``_seedNNN`` function below is a literal transcription of the seed's MATLAB loop
 (same matrices, same initial values, same order, same covariance formula), kept in
 this file on purpose: the presets must reproduce these to 1e-9 on the seed's data.
-Replay inputs follow SEEDS.md: row k holds the control of the interval ending at t_k.
+Replay inputs follow the seeds' convention (docs/presets.md): row k holds the control of
+the interval ending at t_k.
 """
 
 import os
