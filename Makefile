@@ -10,7 +10,7 @@
 #   make colcon       colcon build in a throwaway workspace ($(COLCON_WS))
 #   make ros2cli      install the `ros2` CLI and launch wheels from $(ROS2CLI_WHEELS)
 #                     into $(VENV) (when that folder exists, `make test` does it first)
-#   make constraints  refresh constraints.txt from a fresh resolve (see README)
+#   make constraints  refresh constraints.txt from a fresh resolve (see docs/testing.md)
 #   make demo / bench / clean / distclean
 #
 # Every install goes through constraints.txt (pip -c): the exact versions of every

@@ -34,7 +34,7 @@ Rows (``--rows``, default all that exist):
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
-written to ``--output`` (default out/bench.md) for the README. ``--quick`` shortens
+written to ``--output`` (default out/bench.md) for docs/performance.md. ``--quick`` shortens
 every measurement (a smoke test, not figures to quote).
 
 This directory is not installed with kf_train (it imports filterpy, a test and

@@ -11,7 +11,7 @@ train together, in input order).
 
 ``--workers N`` starts a local cluster of N single-threaded worker processes on this
 machine (loopback only); ``--scheduler ADDRESS`` joins a running cluster instead (see
-README: "A fleet on a Dask cluster"). Needs ``pip install 'kf_train[dask]'``.
+docs/scale.md: "A fleet on a Dask cluster"). Needs ``pip install 'kf_train[dask]'``.
 """
 
 import logging

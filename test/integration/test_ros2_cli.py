@@ -278,7 +278,7 @@ def test_pkg_executables_and_prefix(ros2):
 
 
 def test_launch_files_show_their_arguments(ros2):
-    """``--show-args`` lists every argument the README documents, with defaults."""
+    """``--show-args`` lists every argument docs/ros.md documents, with defaults."""
     text = ros2.check('launch', 'kf_train', 'kf_train.launch.py', '--show-args')
     for argument in ('params_file', 'namespace', 'use_sim_time', 'scenario', 'preset'):
         assert f"'{argument}':" in text, text

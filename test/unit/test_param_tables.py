@@ -101,8 +101,8 @@ def test_the_config_file_is_generated_from_the_tables():
 
 
 def test_the_reference_tables_are_generated_from_the_tables():
-    """README.md holds exactly the tables the parameter tables make."""
-    assert reference_tables(TABLES) in _read(README)
+    """docs/ros.md holds exactly the tables the parameter tables make."""
+    assert reference_tables(TABLES) in _read(REFERENCE)
 
 
 def test_the_config_file_reads_the_same_in_rcl_and_pyyaml_and_gives_the_defaults():
