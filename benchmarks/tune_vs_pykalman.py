@@ -19,7 +19,7 @@ with known q and R. Three estimators, each on the same rows:
 
 Then the coverage of ``tune``'s 95 % intervals over seeded Monte-Carlo runs with the
 truth known. Run: ``.venv/bin/python benchmarks/tune_vs_pykalman.py [--runs 200]``.
-It prints figures; nothing is asserted (test/test_tuning.py holds the assertions).
+It prints figures; nothing is asserted (test/unit/test_tuning.py holds the assertions).
 """
 
 import argparse

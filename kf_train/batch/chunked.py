@@ -17,7 +17,7 @@ the in-memory replay does. The row-by-row paths (EKF presets, ``--filter``) do n
 depend on the blocks at all.
 
 With an ``id`` column a block runs as the in-memory bank does
-(:func:`kf_train.batch.series.run_bank`: ids with few rows in lock-step, ids with many
+(:func:`kf_train.batch.bank.run_bank`: ids with few rows in lock-step, ids with many
 along their own time axis, split by the same cost model), each id starting from its
 own carried state.
 

@@ -12,7 +12,7 @@ smoothed:
     Ps_k = P_k + G_k (Ps_{k+1} − P⁻_{k+1}) G_kᵀ
 
 Both recursions are affine in the smoothed quantity, so for small states they run
-vectorised (:func:`kf_train.batch.series.affine_recursion`, on vec(Ps) for the
+vectorised (:func:`kf_train.batch.affine.affine_recursion`, on vec(Ps) for the
 covariance); larger states run row by row.
 """
 

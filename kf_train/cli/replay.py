@@ -34,7 +34,7 @@ as Python's shortest round-trip ``repr`` writes them (:mod:`kf_train.io.csvio`
 produces the same text in bulk): reading them back gives the computed doubles exactly.
 
 With an ``id`` column, linear presets run as a vectorised bank
-(:func:`kf_train.batch.series.run_bank`: ids with few rows in lock-step, ids with many
+(:func:`kf_train.batch.bank.run_bank`: ids with few rows in lock-step, ids with many
 along their own time axis); the results equal filtering each id alone. The EKF preset
 and ``--filter`` run id by id.
 
@@ -379,7 +379,7 @@ def run_preset(preset: Preset, t, z, u=None, *, t0_s: float = 0.0, horizon_s=Non
     Run a preset over arrays: the vectorised path for linear presets, else the loop.
 
     With ``ids`` (one label per row; or their ``groups``) every id is an independent
-    object: see :func:`kf_train.batch.series.run_bank`.
+    object: see :func:`kf_train.batch.bank.run_bank`.
     """
     if ids is not None or groups is not None:
         return run_bank(preset, t, z, u, ids, t0_s=t0_s, horizon_s=horizon_s, fast=fast,

@@ -21,7 +21,7 @@ the calls and their tuples cost more than the arithmetic):
 :meth:`~kf_train.filters.fast.FastTrainFilter.step` and
 :meth:`~kf_train.filters.fast.FastTrainFilter.run`; the fleet's numpy kernel
 (:mod:`kf_train.batch.fleet`) is its vectorised transcription. Tests hold all three to
-this module bit for bit (test/test_closed_form.py).
+this module bit for bit (test/unit/test_closed_form.py).
 """
 
 from typing import Callable, NamedTuple, Tuple, Union

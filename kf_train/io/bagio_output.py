@@ -6,7 +6,7 @@ An MCAP rosbag2 bag of the estimator's outputs, written from plain values (no rc
 (diagnostic_msgs/msg/DiagnosticArray) and, given regime names, ``regime_probabilities``
 (std_msgs/msg/Float64MultiArray, the names comma-separated in ``layout.dim[0].label``),
 filled as the estimator node fills them
-(kf_train/messages.py): position in ``pose.pose.position.x`` with its variance in
+(kf_train/ros/messages.py): position in ``pose.pose.position.x`` with its variance in
 ``pose.covariance[0]``, velocity in ``twist.twist.linear.x`` with its variance in
 ``twist.covariance[0]``, every other diagonal entry 1e9 (not estimated), orientation
 identity; a one-state estimate has velocity 0 with variance 1e9. The relative names
