@@ -27,6 +27,7 @@ import struct
 import tempfile
 from typing import Optional, Sequence, Tuple, Union
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_diagnostics import DiagnosticsEncoder
 from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
@@ -35,7 +36,6 @@ from kf_train.io.bagio_types import (
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-NS_PER_S = 1_000_000_000
 _T = TYPESTORE.types
 _Time = _T['builtin_interfaces/msg/Time']
 _Header = _T['std_msgs/msg/Header']

@@ -31,6 +31,7 @@ import struct
 import tempfile
 from typing import Dict, Optional, Tuple, Union
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
 from kf_train.io.bagio_output import (
@@ -39,7 +40,6 @@ from kf_train.io.bagio_types import ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST,
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-NS_PER_S = 1_000_000_000
 _T = TYPESTORE.types
 _STAMP = ((('header', 'stamp', 'sec'), 'i'), (('header', 'stamp', 'nanosec'), 'I'))
 MEASUREMENT_FIELDS = _STAMP + ((('pose', 'pose', 'position', 'x'), 'd'),
