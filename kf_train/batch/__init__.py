@@ -31,9 +31,8 @@ from kf_train.batch.linear import CONVERGED_ULPS, predict_ahead, run_linear_seri
 from kf_train.batch.noise_checks import (
     ConsistencyReport, nis_consistency, prediction_errors, PredictionReport, whitened)
 from kf_train.batch.noise_likelihood import (
-    Innovations, is_constant_velocity, make_segment, measured_states, NoiseSetting,
-    noisy_preset, Segment, STATE_UNITS, TUNING_INITIALIZATIONS, TuningProblem,
-    VARIANCE_PARAMETERS)
+    Innovations, make_segment, NoiseSetting, noisy_preset, Segment, STATE_UNITS,
+    TUNING_INITIALIZATIONS, TuningProblem, VARIANCE_PARAMETERS)
 from kf_train.batch.noise_parameters import (
     LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
 from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
@@ -47,6 +46,8 @@ from kf_train.batch.series import (
 from kf_train.batch.smoother import (
     rts_smooth, smooth_series, SmootherResult, VECTORISED_MAX_STATES)
 from kf_train.batch.stream import filter_table, GapsFound, StreamingReplay
+# The measured-state helpers live in presets/ (the live estimator asks them too).
+from kf_train.presets import is_constant_velocity, measured_states
 
 __all__ = [
     'RailSeriesFilter', 'rail_check', 'RailCheck', 'RailPrediction', 'RAIL_NOISE_FIELDS',
