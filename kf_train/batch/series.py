@@ -14,8 +14,8 @@ not a mix of 0.09999999999999964 and 0.10000000000000142.
 ``predict`` and ``update`` row by row; :func:`run_filter_series` does the same with
 any filter of :func:`kf_train.filters.make_filter`. The fast paths beside this module
 give the same numbers (to rounding): :mod:`~kf_train.batch.linear` (linear presets,
-vectorised along time), :mod:`~kf_train.batch.bank` (many objects, rows tagged by
-id), :mod:`~kf_train.batch.fleet` (N train filters stepped at once).
+vectorised along time) and :mod:`~kf_train.batch.bank` (many objects, rows tagged by
+id).
 """
 
 from typing import NamedTuple, Optional

@@ -28,7 +28,7 @@ from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
     LinearModel, per_step_noise_terms, per_step_periods, per_step_weights, PerStepNoise,
-    POSITION_H, ProcessNoise, white_noise_integrals, white_noise_terms, white_noise_terms_into,
+    POSITION_H, ProcessNoise, white_noise_integrals, white_noise_terms,
     WhiteNoiseAcceleration)
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
@@ -66,6 +66,6 @@ __all__ = [
     'robust_cholesky', 'seconds_to_ns', 'Snapshot', 'SquareRoot', 'STATE_NAMES',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
     'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
-    'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',
+    'white_noise_integrals', 'white_noise_terms',
     'WhiteNoiseAcceleration', 'wrap_angle',
 ]
