@@ -14,7 +14,8 @@ from typing import NamedTuple, Optional
 
 from kf_train.batch.linear import predict_ahead, run_linear_series
 from kf_train.batch.series import (
-    MAX_ABS_TIME_S, run_filter_series, run_series, series_inputs, SeriesError, SeriesResult)
+    MAX_ABS_TIME_S, run_filter_series, run_series, series_inputs, series_outputs, SeriesError,
+    SeriesResult)
 from kf_train.batch.soa import (
     entry_add, soa_const, soa_gain, soa_madd, soa_mm, soa_msub, soa_mv,
     soa_prior_covariance, soa_select, soa_stack, soa_sym, soa_t, soa_to_stack)
@@ -246,9 +247,8 @@ def run_bank(preset, t_s, z, u=None, ids=None, *, t0_s: float = 0.0, horizon_s=N
     owner = preset if filt is None else filt.preset
     dt, z, u, horizon_s, x0, P0 = series_inputs(owner, t_arr, z, u, t0_s, horizon_s, x0, P0,
                                                 dt=dt)
-    N, n = dt.shape[0], owner.dim_x
-    out = (np.empty((N, n)), np.empty((N, n, n)), np.empty((N, n)), np.empty((N, n, n)),
-           np.empty((N, n)) if horizon_s else None, np.empty((N, n, n)) if horizon_s else None)
+    N = dt.shape[0]
+    out = series_outputs(N, owner.dim_x, horizon_s)
     alone = np.arange(groups.counts.shape[0])
     dts, inv = np.unique(dt, return_inverse=True)
     inv = inv.reshape(-1)
