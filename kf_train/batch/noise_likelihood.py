@@ -31,7 +31,7 @@ from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch.linear import run_linear_series
 from kf_train.batch.series import SeriesResult, time_steps_s
-from kf_train.filters import as_finite_array, as_vector
+from kf_train.filters import as_finite_array, as_vector, LOG_2PI
 from kf_train.presets import is_constant_velocity, measured_states, Preset
 import numpy as np
 
@@ -41,7 +41,6 @@ VARIANCE_PARAMETERS = {'position': 'measurement_variance',
 TUNING_INITIALIZATIONS = ('first_measurement', 'prior')
 """How a tuned filter starts: as the estimator node's ``initialization``."""
 STATE_UNITS = {'position': 'm', 'velocity': 'm/s'}
-LOG_2PI = math.log(2.0 * math.pi)
 
 
 class Segment(NamedTuple):

@@ -24,7 +24,7 @@ from kf_train.filters.fast import FastRun, FastTrainFilter
 from kf_train.filters.imm import (
     check_transition_matrix, combine, FixedTransition, IMM, IMMFilter, IMMState, make_state,
     RateTransition)
-from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
+from kf_train.filters.kalman import KalmanFilter, LOG_2PI, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
     LinearModel, per_step_noise_terms, per_step_periods, per_step_weights, PerStepNoise,
@@ -58,7 +58,7 @@ __all__ = [
     'ExtendedModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
     'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter', 'keep_positive_definite',
-    'kernel_draws', 'KERNELS', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
+    'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
     'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
