@@ -19,7 +19,7 @@ from kf_train.batch.series import (
 from kf_train.batch.soa import (
     entry_add, soa_const, soa_gain, soa_madd, soa_mm, soa_msub, soa_mv,
     soa_prior_covariance, soa_select, soa_stack, soa_sym, soa_t, soa_to_stack)
-from kf_train.filters import as_finite_array, NS_PER_S
+from kf_train.filters import as_finite_array, NS_PER_S, seconds_to_ns, seconds_to_ns_array
 import numpy as np
 
 # Cost model for choosing, per object, between the lock-step bank (one numpy step
@@ -94,13 +94,13 @@ def bank_time_steps(t_s, groups: Groups, t0_s: float = 0.0) -> np.ndarray:
     t0 = float(as_finite_array('t0_s', t0_s))
     if t.size and max(float(np.max(np.abs(t))), abs(t0)) > MAX_ABS_TIME_S:
         raise ValueError(f'times must be within ±{MAX_ABS_TIME_S:g} s')
-    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
+    t_ns = seconds_to_ns_array(t)
     order = groups.order
     ts = t_ns[order]
     previous = np.empty_like(ts)
     previous[1:] = ts[:-1]
     first = groups.starts[groups.counts > 0]
-    previous[first] = int(round(t0 * NS_PER_S))
+    previous[first] = seconds_to_ns(t0)
     dt_ns = ts - previous
     is_first = np.zeros(ts.shape[0], dtype=bool)
     is_first[first] = True

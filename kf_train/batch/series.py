@@ -20,7 +20,9 @@ id).
 
 from typing import NamedTuple, Optional, Tuple
 
-from kf_train.filters import as_covariance, as_finite_array, as_scalar, as_vector, NS_PER_S
+from kf_train.filters import (
+    as_covariance, as_finite_array, as_scalar, as_vector, NS_PER_S, seconds_to_ns,
+    seconds_to_ns_array)
 import numpy as np
 
 # |t| beyond this (~292 years) overflows int64 nanoseconds.
@@ -73,8 +75,8 @@ def time_steps_s(t_s, t0_s: float = 0.0) -> np.ndarray:
     t0 = as_scalar('t0_s', t0_s)
     if t.size and max(float(np.max(np.abs(t))), abs(t0)) > MAX_ABS_TIME_S:
         raise ValueError(f'times must be within ±{MAX_ABS_TIME_S:g} s')
-    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
-    t0_ns = int(round(t0 * NS_PER_S))
+    t_ns = seconds_to_ns_array(t)
+    t0_ns = seconds_to_ns(t0)
     dt_ns = np.diff(t_ns, prepend=t0_ns)
     if dt_ns.size and dt_ns[0] < 0:
         raise ValueError(f't_s[0] = {float(t[0])!r} is before t0_s = {float(t0)!r}')

@@ -42,7 +42,7 @@ from kf_train.filters.ukf import (
     batch_measurement, BatchMeasurement, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
     keep_positive_definite, MerweScaledSigmaPoints, robust_cholesky, SquareRoot, Transformed,
     unscented_moments, unscented_predict, unscented_update, UnscentedModel)
-from kf_train.filters.units import NS_PER_S, seconds_to_ns
+from kf_train.filters.units import NS_PER_S, seconds_to_ns, seconds_to_ns_array
 from kf_train.filters.validation import (
     as_covariance, as_duration, as_finite_array, as_matrix, as_non_negative, as_scalar,
     as_vector, COVARIANCE_RTOL)
@@ -65,7 +65,8 @@ __all__ = [
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
     'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
     'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
-    'robust_cholesky', 'seconds_to_ns', 'Snapshot', 'SquareRoot', 'STATE_NAMES',
+    'robust_cholesky', 'seconds_to_ns', 'seconds_to_ns_array', 'Snapshot', 'SquareRoot',
+    'STATE_NAMES',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
     'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
     'white_noise_integrals', 'white_noise_terms',
