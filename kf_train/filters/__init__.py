@@ -44,12 +44,12 @@ from kf_train.filters.ukf import (
     unscented_moments, unscented_predict, unscented_update, UnscentedModel)
 from kf_train.filters.units import NS_PER_S, seconds_to_ns, seconds_to_ns_array
 from kf_train.filters.validation import (
-    as_covariance, as_duration, as_finite_array, as_matrix, as_non_negative, as_scalar,
-    as_vector, COVARIANCE_RTOL)
+    as_covariance, as_duration, as_finite_array, as_matrix, as_non_negative, as_positive,
+    as_scalar, as_vector, COVARIANCE_RTOL)
 
 __all__ = [
     'as_covariance', 'as_duration', 'as_finite_array', 'as_matrix', 'as_non_negative',
-    'as_scalar', 'as_vector',
+    'as_positive', 'as_scalar', 'as_vector',
     'batch_measurement', 'BatchMeasurement', 'check_kind', 'check_particles', 'check_seed',
     'check_transition_matrix', 'chi2_cdf', 'chi2_mean_bounds', 'chi2_quantile', 'chi2_sf',
     'closed_form', 'combine', 'constant_velocity_F', 'constant_velocity_model',

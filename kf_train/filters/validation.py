@@ -80,6 +80,14 @@ def as_non_negative(name: str, value) -> float:
     return number
 
 
+def as_positive(name: str, value) -> float:
+    """Return ``value`` as a finite float > 0, or raise naming it."""
+    number = as_scalar(name, value)
+    if number <= 0.0:
+        raise ValueError(f'{name} must be > 0, got {number}')
+    return number
+
+
 def as_duration(name: str, value) -> float:
     """Return a finite, non-negative time interval in seconds."""
     return as_non_negative(name, value)

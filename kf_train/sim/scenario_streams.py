@@ -31,7 +31,7 @@ the control of the interval (t_{k-1}, t_k] that ends at it (SEEDS.md), or None.
 
 from typing import Mapping, NamedTuple, Optional
 
-from kf_train.filters import as_non_negative, as_scalar
+from kf_train.filters import as_non_negative, as_positive, as_scalar
 from kf_train.presets import load_preset
 from kf_train.sim.scenarios import robot_position_m
 from kf_train.sim.simulation import TrainSimulation
@@ -86,14 +86,11 @@ class CarStream:
                  initial_position_m: float = 0.2, initial_velocity_mps: float = 0.0,
                  acceleration_mps2: float = CAR_ACCELERATION_MPS2, exact: bool = False):
         """Set up the truth x0 = [position, velocity] and the seeded generator."""
-        rate_hz = as_scalar('rate_hz', rate_hz)
-        if rate_hz <= 0.0:
-            raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
-        self.rate_hz = rate_hz
+        self.rate_hz = as_positive('rate_hz', rate_hz)
         self.noise_std_m = as_non_negative('noise_std_m', noise_std_m)
         self.acceleration_mps2 = as_scalar('acceleration_mps2', acceleration_mps2)
         dynamics = load_preset('car-exact' if exact else 'car').dynamics
-        dt = 1.0 / rate_hz
+        dt = 1.0 / self.rate_hz
         self._F = dynamics.F(dt)
         self._Bu = dynamics.control(dt)[:, 0] * self.acceleration_mps2
         self._L = _sqrt_psd(dynamics.Q(dt))
@@ -120,10 +117,7 @@ class RobotStream:
                  initial_position_m: float = 0.0,
                  speed_noise_std_mps: float = ROBOT_SPEED_STD_MPS, seed_lag: bool = True):
         """Set up the trajectory, the sensors and the seeded generator."""
-        rate_hz = as_scalar('rate_hz', rate_hz)
-        if rate_hz <= 0.0:
-            raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
-        self.rate_hz = rate_hz
+        self.rate_hz = as_positive('rate_hz', rate_hz)
         self.noise_std_m = as_non_negative('noise_std_m', noise_std_m)
         self.speed_noise_std_mps = as_non_negative('speed_noise_std_mps', speed_noise_std_mps)
         self.initial_position_m = as_scalar('initial_position_m', initial_position_m)

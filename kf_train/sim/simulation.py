@@ -9,7 +9,7 @@ they are drawn one by one (the node) or all at once (offline).
 
 from typing import NamedTuple, Optional
 
-from kf_train.filters import as_scalar
+from kf_train.filters import as_non_negative, as_positive, as_scalar
 import numpy as np
 
 
@@ -41,12 +41,8 @@ class TrainSimulation:
         """Configure the truth and the sensor; ``seed`` None draws fresh entropy."""
         self.initial_position_m = as_scalar('initial_position_m', initial_position_m)
         self.velocity_mps = as_scalar('velocity_mps', velocity_mps)
-        self.noise_std_m = as_scalar('noise_std_m', noise_std_m)
-        if self.noise_std_m < 0.0:
-            raise ValueError(f'noise_std_m must be >= 0, got {self.noise_std_m}')
-        self.rate_hz = as_scalar('rate_hz', rate_hz)
-        if self.rate_hz <= 0.0:
-            raise ValueError(f'rate_hz must be > 0, got {self.rate_hz}')
+        self.noise_std_m = as_non_negative('noise_std_m', noise_std_m)
+        self.rate_hz = as_positive('rate_hz', rate_hz)
         if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f'seed must be a non-negative integer or None, got {seed!r}')
         self.seed = seed
