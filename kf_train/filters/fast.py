@@ -240,7 +240,8 @@ class FastTrainFilter:
         x0, x1, p00, p01, p11, _, _, _, _, _ = self._s
         # closed_form.predict and closed_form.correct, inline, operation for operation (a
         # test holds them bit for bit): calling them makes a step 2.7x as slow, 1.78
-        # against 0.66 µs per measurement (make bench row 1's step() case, issue 22).
+        # against 0.66 µs per measurement (make bench row 1's step() case, and the same
+        # loop calling them, on its data; issue 22).
         # Predict: x⁻ = F x;  P⁻ = F P Fᵀ + Q with F = [[1, dt], [0, 1]]:
         #   P⁻00 = P00 + dt (P01 + (P01 + dt P11)) + Q00
         #   P⁻01 = P01 + dt P11 + Q01;  P⁻11 = P11 + Q11
@@ -339,7 +340,8 @@ class FastTrainFilter:
                     q_dt = dt
                 # The arithmetic of step() (closed_form, inline), line for line. Calling
                 # closed_form makes run() 1.8x as slow (2.0 against 1.11 µs a row), and
-                # calling step() 1.4x (1.42 µs): make bench row 1's run() case, issue 22.
+                # calling step() 1.4x (1.42 µs): make bench row 1's run() case, and the
+                # loop calling them, on its data; issue 22.
                 p01_dt = p01 + dt * p11
                 x0 = x0 + dt * x1
                 p00 = p00 + dt * (p01 + p01_dt) + q00
