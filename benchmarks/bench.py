@@ -10,7 +10,8 @@ Rows (``--rows``, default all that exist):
    rows/s: in memory and from CSV to CSV for every 1-D preset, and the id column (a
    bank of 10³ objects × 10³ rows on their own clocks), each with Δ, its largest
    difference from the plain row-by-row path.
-3. A fleet of N independent filters stepped at once: ns per filter-step as N grows.
+3. The bank: N independent objects (rows tagged by id) filtered at once, in ns per
+   object-row as N grows.
 4. The live estimator: a paced publisher in another process at 1, 2, 5 and 10 kHz;
    delivered and processed %, the estimator's CPU (from /proc), latency from
    measurement publish to estimate receipt (median, p99), and beside it a bare echo
@@ -20,7 +21,7 @@ Rows (``--rows``, default all that exist):
 6. The filter family on the range-bearing seed: µs per update of EKF, UKF, the
    regularised particle filter and the bootstrap one, each as a ratio to the UKF.
 7. Offline at scale: peak RSS of the streamed replay at 10⁶ and 10⁷ rows, CSV and
-   Parquet throughput, 200 000 rows against a plain filterpy script, the fleet beside
+   Parquet throughput, 200 000 rows against a plain filterpy script, the bank beside
    simdkalman at 10⁵ and 10⁶ filters, and ``--engine dask``.
 8. Live fleet capacity: one estimator per train at 10 Hz, its CPU share and memory.
 9. Bags: ``kf-train replay BAG`` on 10⁵ measurements (10⁴ s at 10 Hz) into CSV and
@@ -55,7 +56,7 @@ from typing import List, Optional
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_bag import rows_bag  # noqa: E402, I100
 from bench_common import header, percentile, Row, table  # noqa: E402
-from bench_core import row_core, row_fleet, row_replay  # noqa: E402
+from bench_core import row_bank, row_core, row_replay  # noqa: E402
 from bench_filters import row_filters  # noqa: E402
 from bench_live import LIVE_QOS_DEPTH, LIVE_RATES_HZ, row_live, row_startup  # noqa: E402
 from bench_rail import rows_rail  # noqa: E402
@@ -114,7 +115,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     started = time.monotonic()
     rows: List[Row] = []
     measure = {1: lambda: row_core(args.quick), 2: lambda: row_replay(args.quick),
-               3: lambda: row_fleet(args.quick),
+               3: lambda: row_bank(args.quick),
                4: lambda: row_live(args.quick, args.rates, args.qos_depth),
                5: lambda: row_startup(args.quick),
                6: lambda: row_filters(args.quick),

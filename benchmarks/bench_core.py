@@ -1,5 +1,5 @@
 """
-Rows 1 to 3 of ``make bench``: the 2-state update, replay throughput, the fleet.
+Rows 1 to 3 of ``make bench``: the 2-state update, replay throughput, the bank.
 
 Each row compares kf_train's paths side by side on identical data and prints, beside
 every figure, Δ: its largest difference from the plain path it must equal.
@@ -77,6 +77,7 @@ def _core_cases(zs: List[float], slow: List[float], noise, results: dict) -> lis
 
     F, Q, H, R = constant_velocity_F(DT_S), noise(DT_S), POSITION_H, np.array([[R_M2]])
     x0, P0 = np.array([0.0, 5.0]), np.eye(2)
+    series = np.array(zs)
     q00, q01, q11 = Q[0, 0], Q[0, 1], Q[1, 1]
 
     def floor():
@@ -88,6 +89,9 @@ def _core_cases(zs: List[float], slow: List[float], noise, results: dict) -> lis
         for z in zs:
             step(z, dt, r)
         results['fast'] = fast.state
+
+    def fast_run():
+        results['run'] = FastTrainFilter(x0, P0, noise).run(series, DT_S, R_M2)
 
     def generic_functions():
         x, P = x0, P0
@@ -112,7 +116,7 @@ def _core_cases(zs: List[float], slow: List[float], noise, results: dict) -> lis
         results['filterpy'] = (kf.x.ravel(), kf.P)
 
     n_fast, n_slow = len(zs), len(slow)
-    return [('floor', floor, n_fast), ('fast', fast_step, n_fast),
+    return [('floor', floor, n_fast), ('fast', fast_step, n_fast), ('run', fast_run, n_fast),
             ('functions', generic_functions, n_slow), ('class', generic_class, n_slow),
             ('filterpy', filterpy_kf, n_slow)]
 
@@ -152,6 +156,8 @@ def _core_rows(per_step: dict, deviation: dict) -> List[Row]:
         ('1', what, 'kf_train fast path: FastTrainFilter.step() per measurement',
          f'{us(per_step["fast"])}; Δ vs generic {deviation["fast"]:.1e}', ratio('fast'),
          f'≤2× floor, ≥20× filterpy: {verdict(fast_ok)}'),
+        ('1', what, 'kf_train fast path: FastTrainFilter.run() per row (whole series)',
+         us(per_step['run']), ratio('run'), '-'),
         ('1', what, 'kf_train generic n-state path: kalman.predict + kalman.update',
          us(per_step['functions']), ratio('functions'),
          f'no slower than filterpy: {verdict(per_step["functions"] <= filterpy_s)}'),
@@ -304,58 +310,51 @@ def _bank_rows(replay, csvio, preset, directory: str, quick: bool, run_bank, run
     return result
 
 
-# -- row 3: the fleet -----------------------------------------------------------------
+# -- row 3: the bank -------------------------------------------------------------------
 
-def row_fleet(quick: bool) -> List[Row]:
-    """Measure row 3: N filters stepped at once, shared and per-filter dt and R."""
-    from kf_train.batch import TrainFleet
-    from kf_train.filters import FastTrainFilter, WhiteNoiseAcceleration
+def bench_preset():
+    """Return the benchmark's train as a preset: white-noise acceleration Q_DENSITY, R_M2."""
+    from kf_train.presets import preset_from_mapping
+    return preset_from_mapping({
+        'name': 'bench-train', 'states': ['position', 'velocity'],
+        'measurements': ['position'], 'motion': 'constant_velocity',
+        'process_noise': {'continuous': [[0.0, 0.0], [0.0, Q_DENSITY]]}, 'R': [[R_M2]],
+        'initial_state': [0.0, TRAIN_SPEED_MPS], 'initial_covariance': [1.0, 1.0],
+        'nominal_period_s': DT_S})
+
+
+def row_bank(quick: bool) -> List[Row]:
+    """Measure row 3: N objects at once in the bank (kf_train.batch.bank), 4 rows each."""
+    from kf_train.batch import run_bank, run_series
     import numpy as np
 
-    noise = WhiteNoiseAcceleration(Q_DENSITY)
+    preset = bench_preset()
     rows = []
-    for variant in ('shared dt and R', 'per-filter z, dt and R'):
+    for variant in ('shared dt', 'per-object dt'):
         previous = None
-        for n in (1, 1000, 1_000_000):
+        for n in (1, 1000, 100_000 if quick else 1_000_000):
             rng = np.random.default_rng(n)
-            x0 = np.column_stack([rng.normal(0.0, 1.0, n), rng.normal(10.0, 1.0, n)])
-            fleet = TrainFleet(x0, np.eye(2), noise, R=R_M2)
-            zs = [rng.normal(0.0, 1.0, n) + k for k in range(4)]
-            if variant == 'shared dt and R':
-                dts, Rs = [DT_S] * 4, [R_M2] * 4
-            else:
-                dts = [DT_S * (1.0 + 0.1 * rng.random(n)) for _ in range(4)]
-                Rs = [R_M2 * (1.0 + rng.random(n)) for _ in range(4)]
-            repeats = max(3, min(2000 if not quick else 200, 2_000_000 // n))
-            if quick:
-                repeats = max(2, repeats // 10)
-            calls = iter(range(10 ** 9))
-
-            def one_step():
-                k = next(calls) % 4
-                fleet.step(zs[k], dts[k], Rs[k])
-            one_step()  # the first step touches the second set of arrays: page faults
-            per_step = best_of(one_step, repeats)
-            # Equality: the first, middle and last filters against FastTrainFilter.
-            check = FastTrainFilter(x0[n - 1], np.eye(2), noise, R=R_M2)
-            fleet = TrainFleet(x0, np.eye(2), noise, R=R_M2)
-            for k in range(4):
-                fleet.step(zs[k], dts[k], Rs[k])
-                check.step(float(zs[k][n - 1]), _item(dts[k], n - 1), _item(Rs[k], n - 1))
-            deviation = max(abs(a - b) for a, b in zip(fleet.filter_state(n - 1), check.state))
-            ns = per_step / n * 1e9
+            if variant == 'shared dt':
+                t = np.repeat(DT_S * np.arange(1, 5), n)
+                ids = np.tile(np.arange(n), 4)
+            else:  # each object on its own clock; rows in time order
+                t = np.cumsum(DT_S * (1.0 + 0.1 * rng.random((n, 4))), axis=1).reshape(-1)
+                ids = np.repeat(np.arange(n), 4)
+                order = np.argsort(t, kind='stable')
+                t, ids = t[order], ids[order]
+            z = (TRAIN_SPEED_MPS * t + rng.normal(0.0, 1.0, t.shape[0])).reshape(-1, 1)
+            seconds = best_of(lambda: run_bank(preset, t, z, None, ids),
+                              1 if quick or n >= 100_000 else 3)
+            # Equality: the last object against its own series, row by row.
+            mine = np.flatnonzero(ids == n - 1)
+            result = run_bank(preset, t, z, None, ids)
+            alone = run_series(preset, t[mine], z[mine])
+            deviation = max(_delta(result.x[mine], alone.x), _delta(result.P[mine], alone.P))
+            ns = seconds / (4 * n) * 1e9
             growth = '-' if previous is None else (
-                f'{per_step / previous[1]:.3g}× the time for {n // previous[0]}× the filters')
-            target = '-'
-            if n == 1_000_000:
-                target = f'≤25 ns per filter-step: {verdict(ns <= 25.0)}'
-            rows.append(('3', f'fleet step, {variant}', f'N = {n:,}',
-                         f'{ns:.3g} ns per filter-step ({us(per_step)} per step); '
-                         f'Δ vs FastTrainFilter {deviation:.1e}', growth, target))
-            previous = (n, per_step)
+                f'{seconds / previous[1]:.3g}× the time for {n // previous[0]}× the objects')
+            rows.append(('3', f'bank, {variant}', f'N = {n:,} objects × 4 rows',
+                         f'{ns:,.0f} ns per object-row ({seconds * 1e3:,.1f} ms per call); '
+                         f'Δ vs the object alone {deviation:.1e}', growth, '-'))
+            previous = (n, seconds)
     return rows
-
-
-def _item(value, i: int) -> float:
-    """Return entry i of an array, or a scalar."""
-    return float(value[i]) if hasattr(value, '__len__') else float(value)

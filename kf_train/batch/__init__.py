@@ -3,8 +3,8 @@ Floor 3, batch paths: whole series at once, each tested against the row-by-row r
 
 :func:`run_series` and :func:`run_filter_series` filter row by row (the reference);
 :func:`run_linear_series` vectorises a linear preset along time; :func:`run_bank`
-filters many objects (rows tagged by id) as a vectorised bank; :class:`TrainFleet`
-steps N train filters at once; :func:`rts_smooth` / :func:`smooth_series` smooth.
+filters many objects (rows tagged by id) as a vectorised bank, the one engine for many
+objects at once; :func:`rts_smooth` / :func:`smooth_series` smooth.
 :class:`RailSeriesFilter` runs the rail preset's IMM row by row, started by the first
 measurement; :func:`rail_log_likelihoods` is its IMM likelihood for many noise settings in
 one pass, which ``kf-train tune --preset rail`` maximises, and :func:`rail_check` its
@@ -26,14 +26,12 @@ from kf_train.batch.bank import (
     TimeOrderError)
 from kf_train.batch.chunked import (
     DEFAULT_BLOCK_ROWS, Estimates, output_header, OutputBlock, resolve_horizon, RowError, Rows)
-from kf_train.batch.fleet import DEFAULT_CHUNK_SIZE, FleetState, TrainFleet
 from kf_train.batch.linear import CONVERGED_ULPS, predict_ahead, run_linear_series
 from kf_train.batch.noise_checks import (
     ConsistencyReport, nis_consistency, prediction_errors, PredictionReport, whitened)
 from kf_train.batch.noise_likelihood import (
-    Innovations, is_constant_velocity, make_segment, measured_states, NoiseSetting,
-    noisy_preset, Segment, STATE_UNITS, TUNING_INITIALIZATIONS, TuningProblem,
-    VARIANCE_PARAMETERS)
+    Innovations, make_segment, NoiseSetting, noisy_preset, Segment, STATE_UNITS,
+    TUNING_INITIALIZATIONS, TuningProblem, VARIANCE_PARAMETERS)
 from kf_train.batch.noise_parameters import (
     LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
 from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
@@ -47,13 +45,15 @@ from kf_train.batch.series import (
 from kf_train.batch.smoother import (
     rts_smooth, smooth_series, SmootherResult, VECTORISED_MAX_STATES)
 from kf_train.batch.stream import filter_table, GapsFound, StreamingReplay
+# The measured-state helpers live in presets/ (the live estimator asks them too).
+from kf_train.presets import is_constant_velocity, measured_states
 
 __all__ = [
     'RailSeriesFilter', 'rail_check', 'RailCheck', 'RailPrediction', 'RAIL_NOISE_FIELDS',
     'rail_log_likelihoods', 'RailLikelihoods', 'RailNoise',
     'affine_recursion', 'bank_time_steps', 'ConsistencyReport', 'CONVERGED_ULPS',
-    'DEFAULT_BLOCK_ROWS', 'DEFAULT_CHUNK_SIZE', 'Estimates', 'filter_partition',
-    'filter_table', 'FleetState', 'GapsFound', 'group_rows', 'Groups', 'Innovations',
+    'DEFAULT_BLOCK_ROWS', 'Estimates', 'filter_partition',
+    'filter_table', 'GapsFound', 'group_rows', 'Groups', 'Innovations',
     'is_constant_velocity', 'LikelihoodProblem', 'LOCKSTEP_STEP_S', 'make_segment',
     'MAX_ABS_TIME_S', 'measured_states', 'nis_consistency', 'NoiseParameterisation',
     'NoiseSetting', 'NoiseSuggestion', 'noisy_preset', 'output_header', 'OutputBlock',
@@ -61,7 +61,7 @@ __all__ = [
     'PredictionReport', 'resolve_horizon', 'RowError', 'Rows', 'rts_smooth', 'run_bank',
     'run_filter_series', 'run_linear_series', 'run_series', 'RunningNoiseEstimate', 'Segment',
     'SERIES_CALL_S', 'SeriesError', 'SeriesResult', 'smooth_series', 'SmootherResult',
-    'STATE_UNITS', 'StreamingReplay', 'time_steps_s', 'TimeOrderError', 'TrainFleet',
+    'STATE_UNITS', 'StreamingReplay', 'time_steps_s', 'TimeOrderError',
     'TUNING_INITIALIZATIONS', 'TuningProblem', 'VARIANCE_PARAMETERS', 'VARIANCE_UNITS',
     'VECTORISED_MAX_STATES', 'whitened',
 ]

@@ -14,11 +14,12 @@ from typing import NamedTuple, Optional
 
 from kf_train.batch.linear import predict_ahead, run_linear_series
 from kf_train.batch.series import (
-    MAX_ABS_TIME_S, run_filter_series, run_series, series_inputs, SeriesError, SeriesResult)
+    MAX_ABS_TIME_S, run_filter_series, run_series, series_inputs, series_outputs, SeriesError,
+    SeriesResult)
 from kf_train.batch.soa import (
     entry_add, soa_const, soa_gain, soa_madd, soa_mm, soa_msub, soa_mv,
     soa_prior_covariance, soa_select, soa_stack, soa_sym, soa_t, soa_to_stack)
-from kf_train.filters import as_finite_array, NS_PER_S
+from kf_train.filters import as_finite_array, NS_PER_S, seconds_to_ns, seconds_to_ns_array
 import numpy as np
 
 # Cost model for choosing, per object, between the lock-step bank (one numpy step
@@ -93,13 +94,13 @@ def bank_time_steps(t_s, groups: Groups, t0_s: float = 0.0) -> np.ndarray:
     t0 = float(as_finite_array('t0_s', t0_s))
     if t.size and max(float(np.max(np.abs(t))), abs(t0)) > MAX_ABS_TIME_S:
         raise ValueError(f'times must be within ±{MAX_ABS_TIME_S:g} s')
-    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
+    t_ns = seconds_to_ns_array(t)
     order = groups.order
     ts = t_ns[order]
     previous = np.empty_like(ts)
     previous[1:] = ts[:-1]
     first = groups.starts[groups.counts > 0]
-    previous[first] = int(round(t0 * NS_PER_S))
+    previous[first] = seconds_to_ns(t0)
     dt_ns = ts - previous
     is_first = np.zeros(ts.shape[0], dtype=bool)
     is_first[first] = True
@@ -246,9 +247,8 @@ def run_bank(preset, t_s, z, u=None, ids=None, *, t0_s: float = 0.0, horizon_s=N
     owner = preset if filt is None else filt.preset
     dt, z, u, horizon_s, x0, P0 = series_inputs(owner, t_arr, z, u, t0_s, horizon_s, x0, P0,
                                                 dt=dt)
-    N, n = dt.shape[0], owner.dim_x
-    out = (np.empty((N, n)), np.empty((N, n, n)), np.empty((N, n)), np.empty((N, n, n)),
-           np.empty((N, n)) if horizon_s else None, np.empty((N, n, n)) if horizon_s else None)
+    N = dt.shape[0]
+    out = series_outputs(N, owner.dim_x, horizon_s)
     alone = np.arange(groups.counts.shape[0])
     dts, inv = np.unique(dt, return_inverse=True)
     inv = inv.reshape(-1)

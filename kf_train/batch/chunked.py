@@ -34,7 +34,8 @@ from kf_train.batch.bank import _run_together, _split_objects, group_rows
 from kf_train.batch.linear import run_linear_series
 from kf_train.batch.series import (
     filter_rows, MAX_ABS_TIME_S, run_series, SeriesError, without_gaps)
-from kf_train.filters import as_covariance, as_finite_array, as_vector, NS_PER_S
+from kf_train.filters import (
+    as_covariance, as_finite_array, as_vector, NS_PER_S, seconds_to_ns, seconds_to_ns_array)
 import numpy as np
 
 # The last output column of an input with gaps: 1.0 updated, 0.0 predicted only.
@@ -168,7 +169,7 @@ def check_block_times(t: np.ndarray, first_row: int) -> np.ndarray:
         k = int(big[0])
         raise RowError(first_row + k, f'{float(t[k])!r} s is out of range '
                        f'(|t| <= {MAX_ABS_TIME_S:g} s)', 'range')
-    return np.rint(t * NS_PER_S).astype(np.int64)
+    return seconds_to_ns_array(t)
 
 
 class ObjectStates:
@@ -178,7 +179,7 @@ class ObjectStates:
         """Start with no object; ``filt`` keeps one filter snapshot per object."""
         n = preset.dim_x
         self.preset, self.filt, self.t0_s = preset, filt, float(t0_s)
-        self.t0_ns = int(round(self.t0_s * NS_PER_S))
+        self.t0_ns = seconds_to_ns(self.t0_s)
         self.x0 = as_vector('x0', preset.initial_state, n)
         self.P0 = as_covariance('P0', preset.initial_covariance, n)
         self.seen = np.zeros(0, dtype=bool)

@@ -28,9 +28,8 @@ runs the data pass alone for those q, and ℓ is bit for bit what it was without
 import math
 from typing import Dict, Optional, Tuple
 
-from kf_train.batch.noise_likelihood import is_constant_velocity, LOG_2PI, measured_states
-from kf_train.filters import white_noise_integrals
-from kf_train.presets import Preset
+from kf_train.filters import LOG_2PI, white_noise_integrals
+from kf_train.presets import is_constant_velocity, measured_states, Preset
 import numpy as np
 
 

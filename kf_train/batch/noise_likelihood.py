@@ -31,8 +31,8 @@ from typing import List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.batch.linear import run_linear_series
 from kf_train.batch.series import SeriesResult, time_steps_s
-from kf_train.filters import as_finite_array, as_vector
-from kf_train.presets import Preset
+from kf_train.filters import as_finite_array, as_vector, LOG_2PI
+from kf_train.presets import is_constant_velocity, measured_states, Preset
 import numpy as np
 
 # Node parameter of each measured quantity's variance (others have none).
@@ -41,7 +41,6 @@ VARIANCE_PARAMETERS = {'position': 'measurement_variance',
 TUNING_INITIALIZATIONS = ('first_measurement', 'prior')
 """How a tuned filter starts: as the estimator node's ``initialization``."""
 STATE_UNITS = {'position': 'm', 'velocity': 'm/s'}
-LOG_2PI = math.log(2.0 * math.pi)
 
 
 class Segment(NamedTuple):
@@ -97,23 +96,6 @@ class NoiseSetting:
     """R's diagonal, one variance per measurement; None: the preset's R."""
     initial_state: Optional[Tuple[float, ...]] = None
     """The initial state; None: the preset's."""
-
-
-def is_constant_velocity(preset: Preset) -> bool:
-    """Return whether q applies: states [position, velocity], F = [[1, dt], [0, 1]]."""
-    return (preset.state_names == ('position', 'velocity')
-            and np.array_equal(preset.dynamics.A, [[0.0, 1.0], [0.0, 0.0]]))
-
-
-def measured_states(preset: Preset) -> Optional[Tuple[int, ...]]:
-    """Return, per measurement, the state it measures when H selects states; else None."""
-    indices = []
-    for row in preset.model.H:
-        hits = np.flatnonzero(row)
-        if hits.size != 1 or row[hits[0]] != 1.0:
-            return None
-        indices.append(int(hits[0]))
-    return tuple(indices) if len(set(indices)) == len(indices) else None
 
 
 def noisy_preset(preset: Preset, process_noise_density: float = 0.0,

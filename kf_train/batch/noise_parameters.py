@@ -16,7 +16,8 @@ import math
 from typing import List, NamedTuple, Optional, Protocol, Sequence, Tuple, Union
 
 from kf_train.batch.noise_likelihood import (
-    is_constant_velocity, NoiseSetting, STATE_UNITS, TuningProblem, VARIANCE_PARAMETERS)
+    NoiseSetting, STATE_UNITS, TuningProblem, VARIANCE_PARAMETERS)
+from kf_train.presets import is_constant_velocity
 import numpy as np
 
 VARIANCE_UNITS = {'position': 'm²', 'velocity': 'm²/s²'}

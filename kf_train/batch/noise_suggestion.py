@@ -27,10 +27,9 @@ import math
 from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch import noise_grid
-from kf_train.batch.noise_likelihood import (
-    is_constant_velocity, make_segment, NoiseSetting, TuningProblem)
+from kf_train.batch.noise_likelihood import make_segment, NoiseSetting, TuningProblem
 from kf_train.filters import chi2_quantile, NS_PER_S
-from kf_train.presets import Preset
+from kf_train.presets import is_constant_velocity, Preset
 import numpy as np
 
 _GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0

@@ -14,13 +14,15 @@ not a mix of 0.09999999999999964 and 0.10000000000000142.
 ``predict`` and ``update`` row by row; :func:`run_filter_series` does the same with
 any filter of :func:`kf_train.filters.make_filter`. The fast paths beside this module
 give the same numbers (to rounding): :mod:`~kf_train.batch.linear` (linear presets,
-vectorised along time), :mod:`~kf_train.batch.bank` (many objects, rows tagged by
-id), :mod:`~kf_train.batch.fleet` (N train filters stepped at once).
+vectorised along time) and :mod:`~kf_train.batch.bank` (many objects, rows tagged by
+id).
 """
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Tuple
 
-from kf_train.filters import as_covariance, as_finite_array, as_vector, NS_PER_S
+from kf_train.filters import (
+    as_covariance, as_finite_array, as_scalar, as_vector, NS_PER_S, seconds_to_ns,
+    seconds_to_ns_array)
 import numpy as np
 
 # |t| beyond this (~292 years) overflows int64 nanoseconds.
@@ -70,13 +72,11 @@ def time_steps_s(t_s, t0_s: float = 0.0) -> np.ndarray:
     t = as_finite_array('t_s', t_s)
     if t.ndim != 1:
         raise ValueError(f't_s must be a vector, got shape {t.shape}')
-    t0 = as_finite_array('t0_s', t0_s)
-    if t0.ndim != 0:
-        raise ValueError(f't0_s must be a scalar, got shape {t0.shape}')
-    if t.size and max(float(np.max(np.abs(t))), abs(float(t0))) > MAX_ABS_TIME_S:
+    t0 = as_scalar('t0_s', t0_s)
+    if t.size and max(float(np.max(np.abs(t))), abs(t0)) > MAX_ABS_TIME_S:
         raise ValueError(f'times must be within ±{MAX_ABS_TIME_S:g} s')
-    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
-    t0_ns = int(round(float(t0) * NS_PER_S))
+    t_ns = seconds_to_ns_array(t)
+    t0_ns = seconds_to_ns(t0)
     dt_ns = np.diff(t_ns, prepend=t0_ns)
     if dt_ns.size and dt_ns[0] < 0:
         raise ValueError(f't_s[0] = {float(t[0])!r} is before t0_s = {float(t0)!r}')
@@ -87,6 +87,12 @@ def time_steps_s(t_s, t0_s: float = 0.0) -> np.ndarray:
                          f'{float(t[k - 1])!r} '
                          '(times must increase by at least 1 ns)')
     return dt_ns / NS_PER_S
+
+
+def series_outputs(N: int, n: int, horizon_s) -> Tuple[Optional[np.ndarray], ...]:
+    """Return empty (x, P, prior x, prior P, predicted x, predicted P) for N rows, n states."""
+    return (np.empty((N, n)), np.empty((N, n, n)), np.empty((N, n)), np.empty((N, n, n)),
+            np.empty((N, n)) if horizon_s else None, np.empty((N, n, n)) if horizon_s else None)
 
 
 def series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0, dt=None):
@@ -141,12 +147,8 @@ def run_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=
     """
     z, missing = without_gaps(z, missing)
     dt, z, u, horizon_s, x, P = series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
-    N, n = dt.shape[0], preset.dim_x
-    model = preset.model
-    out_x, out_P = np.empty((N, n)), np.empty((N, n, n))
-    prior_x, prior_P = np.empty((N, n)), np.empty((N, n, n))
-    pred_x = np.empty((N, n)) if horizon_s else None
-    pred_P = np.empty((N, n, n)) if horizon_s else None
+    N, model = dt.shape[0], preset.model
+    out_x, out_P, prior_x, prior_P, pred_x, pred_P = series_outputs(N, preset.dim_x, horizon_s)
     for k in range(N):
         u_k = None if u is None else u[k]
         try:
@@ -189,11 +191,9 @@ def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None):
     horizon; a step's ValueError becomes a SeriesError naming the row. Rows flagged in
     ``missing`` are predicted, not updated.
     """
-    N, n = dt.shape[0], filt.preset.dim_x
-    out_x, out_P = np.empty((N, n)), np.empty((N, n, n))
-    prior_x, prior_P = np.empty((N, n)), np.empty((N, n, n))
-    pred_x = np.empty((N, n)) if horizon_s else None
-    pred_P = np.empty((N, n, n)) if horizon_s else None
+    N = dt.shape[0]
+    out_x, out_P, prior_x, prior_P, pred_x, pred_P = series_outputs(
+        N, filt.preset.dim_x, horizon_s)
     for k in range(N):
         u_k = None if u is None else u[k]
         try:

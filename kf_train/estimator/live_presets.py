@@ -10,12 +10,14 @@ of docs/rail.md.
 """
 
 import os
-from typing import Dict, Optional, Sequence, Tuple, Union
+from typing import Dict, Sequence, Tuple, Union
 
 from kf_train.filters import as_covariance, as_vector
-from kf_train.presets import (
-    is_rail_preset_file, load_preset, load_preset_file, load_rail_preset, Preset, PRESET_NAMES,
-    RAIL_PRESET_NAME, RailPreset)
+# is_constant_velocity and measured_states live in presets/ (shared with batch/); they are
+# re-exported here for the settings.
+from kf_train.presets import (  # noqa: F401
+    is_constant_velocity, is_rail_preset_file, load_preset, load_preset_file, load_rail_preset,
+    measured_states, Preset, PRESET_NAMES, RAIL_PRESET_NAME, RailPreset)
 import numpy as np
 
 LivePreset = Union[Preset, RailPreset]
@@ -139,21 +141,3 @@ def preset_defaults(spec: str) -> Dict[str, object]:
 def is_rail(preset: LivePreset) -> bool:
     """Return whether ``preset`` is a rail preset (an IMM of regimes)."""
     return isinstance(preset, RailPreset)
-
-
-def is_constant_velocity(preset: LivePreset) -> bool:
-    """Return whether the preset's states are [position, velocity] with F = [[1, dt], [0, 1]]."""
-    return (preset.state_names == ('position', 'velocity')
-            and np.array_equal(preset.dynamics.A, [[0.0, 1.0], [0.0, 0.0]]))
-
-
-def measured_states(preset: LivePreset) -> Optional[Tuple[int, ...]]:
-    """Return, per measurement, the state it measures (H a selection), or None."""
-    H = preset.H if isinstance(preset, RailPreset) else preset.model.H
-    indices = []
-    for row in H:
-        hits = np.flatnonzero(row)
-        if hits.size != 1 or row[hits[0]] != 1.0:
-            return None
-        indices.append(int(hits[0]))
-    return tuple(indices) if len(set(indices)) == len(indices) else None

@@ -24,11 +24,11 @@ from kf_train.filters.fast import FastRun, FastTrainFilter
 from kf_train.filters.imm import (
     check_transition_matrix, combine, FixedTransition, IMM, IMMFilter, IMMState, make_state,
     RateTransition)
-from kf_train.filters.kalman import KalmanFilter, predict, update, UpdateResult
+from kf_train.filters.kalman import KalmanFilter, LOG_2PI, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
     LinearModel, per_step_noise_terms, per_step_periods, per_step_weights, PerStepNoise,
-    POSITION_H, ProcessNoise, white_noise_integrals, white_noise_terms, white_noise_terms_into,
+    POSITION_H, ProcessNoise, white_noise_integrals, white_noise_terms,
     WhiteNoiseAcceleration)
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
@@ -42,12 +42,14 @@ from kf_train.filters.ukf import (
     batch_measurement, BatchMeasurement, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
     keep_positive_definite, MerweScaledSigmaPoints, robust_cholesky, SquareRoot, Transformed,
     unscented_moments, unscented_predict, unscented_update, UnscentedModel)
-from kf_train.filters.units import NS_PER_S, seconds_to_ns
+from kf_train.filters.units import NS_PER_S, seconds_to_ns, seconds_to_ns_array
 from kf_train.filters.validation import (
-    as_covariance, as_duration, as_finite_array, as_matrix, as_vector, COVARIANCE_RTOL)
+    as_covariance, as_duration, as_finite_array, as_matrix, as_non_negative, as_positive,
+    as_scalar, as_vector, COVARIANCE_RTOL)
 
 __all__ = [
-    'as_covariance', 'as_duration', 'as_finite_array', 'as_matrix', 'as_vector',
+    'as_covariance', 'as_duration', 'as_finite_array', 'as_matrix', 'as_non_negative',
+    'as_positive', 'as_scalar', 'as_vector',
     'batch_measurement', 'BatchMeasurement', 'check_kind', 'check_particles', 'check_seed',
     'check_transition_matrix', 'chi2_cdf', 'chi2_mean_bounds', 'chi2_quantile', 'chi2_sf',
     'closed_form', 'combine', 'constant_velocity_F', 'constant_velocity_model',
@@ -56,16 +58,17 @@ __all__ = [
     'ExtendedModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
     'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter', 'keep_positive_definite',
-    'kernel_draws', 'KERNELS', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
+    'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
     'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
     'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
     'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
-    'robust_cholesky', 'seconds_to_ns', 'Snapshot', 'SquareRoot', 'STATE_NAMES',
+    'robust_cholesky', 'seconds_to_ns', 'seconds_to_ns_array', 'Snapshot', 'SquareRoot',
+    'STATE_NAMES',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
     'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
-    'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',
+    'white_noise_integrals', 'white_noise_terms',
     'WhiteNoiseAcceleration', 'wrap_angle',
 ]

@@ -1,5 +1,5 @@
 """
-The 2-state train step in closed form, in plain Python floats: written out once, here.
+The 2-state train step in closed form, in plain Python floats: the equations' one home.
 
 The model is the one :mod:`kf_train.filters.models` builds for the train: state
 [position m, velocity m/s], ``F(dt) = [[1, dt], [0, 1]]``, a position measurement
@@ -14,14 +14,16 @@ P00 = a·P⁻00, P01 = a·P⁻01, P11 = P⁻11 - K1·P⁻01 with a = 1 - K0 = R/
 a = R/S rather than 1 - K0 avoids the cancellation when R ≪ P⁻00, and keeps P00 >= 0
 in floating point.
 
-Floats in, floats out, unchecked: callers check their inputs and the results. Two hot
-loops transcribe this arithmetic inline, operation for operation, because calling
-these two functions per measurement makes a step about 1.7 times as slow (measured:
-the calls and their tuples cost more than the arithmetic):
-:meth:`~kf_train.filters.fast.FastTrainFilter.step` and
-:meth:`~kf_train.filters.fast.FastTrainFilter.run`; the fleet's numpy kernel
-(:mod:`kf_train.batch.fleet`) is its vectorised transcription. Tests hold all three to
-this module bit for bit (test/unit/test_closed_form.py).
+Floats in, floats out, unchecked: callers check their inputs and the results. The
+estimator's closed-form train model (:mod:`kf_train.estimator.adapters`) and
+``FastTrainFilter.predict``/``update`` call these functions. Two hot loops transcribe
+the arithmetic inline, operation for operation, because the calls and their tuples
+cost more than the arithmetic (``make bench`` row 1, issue 22; the figures are beside
+each copy): :meth:`~kf_train.filters.fast.FastTrainFilter.step` and the loop of
+:meth:`~kf_train.filters.fast.FastTrainFilter.run`. There is no vectorised copy: many
+trains at once run in the bank (:mod:`kf_train.batch.bank`, the generic n-state
+arithmetic). Tests hold both copies to this module bit for bit
+(test/unit/test_closed_form.py).
 """
 
 from typing import Callable, NamedTuple, Tuple, Union

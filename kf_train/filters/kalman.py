@@ -28,6 +28,9 @@ _SMALL = 64
 _IDENTITIES = {}
 _INF = float('inf')
 
+LOG_2PI = math.log(2.0 * math.pi)
+"""log 2π, of the Gaussian log-likelihood of an innovation: −½ (NIS + log det S + m·LOG_2PI)."""
+
 
 class UpdateResult(NamedTuple):
     """What a measurement update produced besides the new state."""

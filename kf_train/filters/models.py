@@ -51,32 +51,12 @@ def white_noise_terms(q: float, dt: float) -> Tuple[float, float, float]:
     """
     Return (Q00, Q01, Q11) of Q(dt) = q·[[dt³/3, dt²/2], [dt²/2, dt]]: THE white-noise Q(dt).
 
-    Every path that needs a white-noise acceleration's Q(dt) gets it here, or from
-    :func:`white_noise_terms_into` (the fleet's vectorised form, beside it).
+    Every path that needs a white-noise acceleration's Q(dt) gets it here (the presets'
+    vectorised form from :func:`white_noise_integrals`).
     A float dt so large that dt³ overflows raises OverflowError (float powers do).
     """
     third, half, one = white_noise_integrals(dt)
     return q * third, q * half, q * one
-
-
-def white_noise_terms_into(q: float, dt: np.ndarray, out) -> Tuple[np.ndarray, ...]:
-    """
-    Write :func:`white_noise_terms` of an array dt into ``out`` (three arrays); return them.
-
-    The fleet's form: no temporaries, so a chunk stays in the CPU cache, and dt³ as
-    dt²·dt. dt² is correctly rounded here (CPython's dt ** 2 is not always), and dt³
-    rounds twice where pow rounds once: an entry may differ from
-    :func:`white_noise_terms`' by an ulp or two; pow per element would cost more than
-    the rest of a fleet step.
-    """
-    q00, q01, q11 = (a[:dt.shape[0]] for a in out)
-    np.multiply(dt, dt, out=q01)
-    np.multiply(q01, dt, out=q00)
-    np.divide(q00, 3.0, out=q00)
-    np.multiply(q00, q, out=q00)            # Q00 = q·(dt³/3)
-    np.multiply(q01, 0.5 * q, out=q01)      # Q01 = q·(dt²/2), halving being exact
-    np.multiply(dt, q, out=q11)             # Q11 = q·dt
-    return q00, q01, q11
 
 
 class WhiteNoiseAcceleration:
@@ -126,7 +106,7 @@ def per_step_noise_terms(a: float, c: float, b: float, period_s: float,
     s1 = n * r + T * n * (n - 1) / 2.0
     # r * r, not r ** 2: a product is correctly rounded on every machine, libm's pow is
     # not (glibc misrounds ~1 square in 1000, differently with and without FMA), and
-    # the vectorised copies (fleet, presets) square with numpy, which is exact too.
+    # the vectorised form (presets) squares with numpy, which is exact too.
     s2 = n * (r * r) + r * T * n * (n - 1) + T ** 2 * (n - 1) * n * (2 * n - 1) / 6.0
     return a * s0 + 2.0 * c * s1 + b * s2, c * s0 + b * s1, b * s0
 

@@ -64,12 +64,30 @@ def as_covariance(name: str, value, dim: int) -> np.ndarray:
     return symmetric
 
 
-def as_duration(name: str, value) -> float:
-    """Return a finite, non-negative time interval in seconds."""
+def as_scalar(name: str, value) -> float:
+    """Return ``value`` as a finite float, or raise naming it (not numeric, not a scalar)."""
     array = as_finite_array(name, value)
     if array.ndim != 0:
         raise ValueError(f'{name} must be a scalar, got shape {array.shape}')
-    seconds = float(array)
-    if seconds < 0.0:
-        raise ValueError(f'{name} must be >= 0, got {seconds}')
-    return seconds
+    return float(array)
+
+
+def as_non_negative(name: str, value) -> float:
+    """Return ``value`` as a finite float >= 0, or raise naming it."""
+    number = as_scalar(name, value)
+    if number < 0.0:
+        raise ValueError(f'{name} must be >= 0, got {number}')
+    return number
+
+
+def as_positive(name: str, value) -> float:
+    """Return ``value`` as a finite float > 0, or raise naming it."""
+    number = as_scalar(name, value)
+    if number <= 0.0:
+        raise ValueError(f'{name} must be > 0, got {number}')
+    return number
+
+
+def as_duration(name: str, value) -> float:
+    """Return a finite, non-negative time interval in seconds."""
+    return as_non_negative(name, value)

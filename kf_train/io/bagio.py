@@ -38,6 +38,7 @@ from pathlib import Path
 import struct
 from typing import Callable, Dict, Iterator, NamedTuple, Optional, Sequence, Tuple, Union
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_layout import FieldReader
 from kf_train.io.bagio_types import (
     ACCEL, CONTROL_TYPES, MEASUREMENT_TYPES, ODOMETRY, POSE, TWIST)
@@ -46,7 +47,6 @@ from rosbags.rosbag2.errors import ReaderError
 from rosbags.serde import SerdeError
 
 NAN = float('nan')
-NS_PER_S = 1_000_000_000
 # At most this many topics are listed in an error message.
 LISTED_TOPICS = 8
 # What the rosbags reader raises on broken storage; decoding adds SerdeError. A garbled

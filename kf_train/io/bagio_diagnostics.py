@@ -23,9 +23,9 @@ random statuses.
 import struct
 from typing import Dict, Sequence, Tuple
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_types import DIAGNOSTICS, TYPESTORE
 
-NS_PER_S = 1_000_000_000
 _ENCAPSULATION = b'\x00\x01\x00\x00'          # CDR, little endian
 _STAMP = struct.Struct('<iI')
 _U32 = struct.Struct('<I').pack

@@ -27,6 +27,7 @@ import struct
 import tempfile
 from typing import Optional, Sequence, Tuple, Union
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_diagnostics import DiagnosticsEncoder
 from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
@@ -35,7 +36,6 @@ from kf_train.io.bagio_types import (
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
-NS_PER_S = 1_000_000_000
 _T = TYPESTORE.types
 _Time = _T['builtin_interfaces/msg/Time']
 _Header = _T['std_msgs/msg/Header']
@@ -58,7 +58,7 @@ ODOMETRY_FIELDS = _STAMP + (
 VECTOR3_FIELDS = _STAMP + tuple(((('vector', axis), 'd') for axis in 'xyz'))
 
 
-def _header(stamp_ns: int, frame_id: str):
+def header_message(stamp_ns: int, frame_id: str):
     """Return a std_msgs/Header at ``stamp_ns``."""
     sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     return _Header(stamp=_Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
@@ -81,7 +81,7 @@ def odometry_message(stamp_ns: int, frame_id: str, child_frame_id: str, x, P):
     else:
         velocity, var_velocity = float(x[1]), float(P[1][1])
     return _Odometry(
-        header=_header(stamp_ns, frame_id), child_frame_id=child_frame_id,
+        header=header_message(stamp_ns, frame_id), child_frame_id=child_frame_id,
         pose=_PoseWithCovariance(
             pose=_Pose(position=_Point(x=position, y=0.0, z=0.0),
                        orientation=_Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
@@ -96,12 +96,31 @@ class AtomicBag:
     """
     A bag written into a temporary folder and moved into place only when complete.
 
-    Subclasses set ``path``, ``single_file``, ``_writer`` (an open rosbags Writer),
-    ``_written`` (the bag folder it writes) and ``_temporary`` (the folder holding it),
-    and ``_appender`` when they write through a :class:`MessageAppender`.
+    Subclasses call :meth:`_start`, which sets ``path``, ``single_file``, ``_writer`` (an
+    open rosbags Writer), ``_written`` (the bag folder it writes) and ``_temporary`` (the
+    folder holding it), and set ``_appender`` when they write through a
+    :class:`MessageAppender`.
     """
 
     _appender: Optional[MessageAppender] = None
+
+    def _start(self, path: Union[str, Path]) -> None:
+        """Check ``path`` and open the writer in a new temporary folder beside it."""
+        self.path = Path(path)
+        self.single_file = self.path.suffix == '.mcap'
+        _check_target(self.path, self.single_file)
+        self._temporary = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.',
+                                                dir=self.path.parent))
+        # The bag directory inside it: the target's name (its stem for a single file,
+        # whose MCAP file inside is then named as the target).
+        self._written = self._temporary / (self.path.stem if self.single_file
+                                           else self.path.name)
+        try:
+            self._writer = Writer(self._written, version=9, storage_plugin=StoragePlugin.MCAP)
+            self._writer.open()
+        except BaseException:
+            self.abort()
+            raise
 
     def close(self) -> Path:
         """Finish the bag and move it into place; return its path."""
@@ -143,22 +162,10 @@ class OutputBag(AtomicBag):
                  child_frame_id: str = 'base_link', regime_names: Sequence[str] = ()):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
         self.regime_names = tuple(regime_names)
-        self.path = Path(path)
-        self.single_file = self.path.suffix == '.mcap'
         self.frame_id, self.child_frame_id = frame_id, child_frame_id
-        _check_target(self.path, self.single_file)
-        self._temporary = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.',
-                                                dir=self.path.parent))
-        # The bag directory inside it: the target's name (its stem for a single file,
-        # whose MCAP file inside is then named as the target).
-        self._written = self._temporary / (self.path.stem if self.single_file
-                                           else self.path.name)
+        self._start(path)
         try:
-            self._writer = Writer(self._written, version=9,
-                                  storage_plugin=StoragePlugin.MCAP)
-            self._writer.open()
-            prefix = '/'.join(part for part in namespace.split('/') if part)
-            prefix = '/' + prefix + '/' if prefix else '/'
+            prefix = topic_prefix(namespace)
             self._connections = {
                 name: self._writer.add_connection(topic, kind, typestore=TYPESTORE)
                 for name, topic, kind in (
@@ -170,14 +177,15 @@ class OutputBag(AtomicBag):
                 self._connections['regime_probabilities'] = self._writer.add_connection(
                     prefix + 'regime_probabilities', MULTIARRAY, typestore=TYPESTORE)
         except BaseException:
-            shutil.rmtree(self._temporary, ignore_errors=True)
+            self.abort()
             raise
         self.counts = dict.fromkeys(self._connections, 0)
         self._odometry = PatchTemplate(
             odometry_message(0, frame_id, child_frame_id, [0.0, 0.0], [[0.0, 0.0], [0.0, 0.0]]),
             ODOMETRY, ODOMETRY_FIELDS)
         self._vector3 = PatchTemplate(
-            _Vector3Stamped(header=_header(0, frame_id), vector=_Vector3(x=0.0, y=0.0, z=0.0)),
+            _Vector3Stamped(header=header_message(0, frame_id),
+                            vector=_Vector3(x=0.0, y=0.0, z=0.0)),
             VECTOR3, VECTOR3_FIELDS)
         self._diagnostics = DiagnosticsEncoder()
         count = len(self.regime_names)
@@ -265,6 +273,12 @@ def _odometry_values(x, P) -> Tuple[float, float, float, float]:
     if len(x) == 1:
         return float(x[0]), float(P[0][0]), 0.0, UNESTIMATED_VARIANCE
     return float(x[0]), float(P[0][0]), float(x[1]), float(P[1][1])
+
+
+def topic_prefix(namespace: str) -> str:
+    """Return the prefix of a namespace's topics: '/' or '/a/b/' ('a/b', '/a/b/' alike)."""
+    prefix = '/'.join(part for part in namespace.split('/') if part)
+    return '/' + prefix + '/' if prefix else '/'
 
 
 def _stamp_error(stamp_ns: int) -> ValueError:

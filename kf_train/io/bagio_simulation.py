@@ -26,20 +26,17 @@ for a path ending in ``.mcap`` the single MCAP file); an exception inside the
 """
 
 from pathlib import Path
-import shutil
 import struct
-import tempfile
 from typing import Dict, Optional, Tuple, Union
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
 from kf_train.io.bagio_output import (
-    _check_target, _stamp_error, AtomicBag, ODOMETRY_FIELDS, odometry_message)
+    _stamp_error, AtomicBag, header_message, ODOMETRY_FIELDS, odometry_message, topic_prefix)
 from kf_train.io.bagio_types import ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST, TYPESTORE
 import numpy as np
-from rosbags.rosbag2 import StoragePlugin, Writer
 
-NS_PER_S = 1_000_000_000
 _T = TYPESTORE.types
 _STAMP = ((('header', 'stamp', 'sec'), 'i'), (('header', 'stamp', 'nanosec'), 'I'))
 MEASUREMENT_FIELDS = _STAMP + ((('pose', 'pose', 'position', 'x'), 'd'),
@@ -50,13 +47,6 @@ CONTROL_FIELDS = {ACCEL: _STAMP + ((('accel', 'linear', 'x'), 'd'),),
                   TWIST: _STAMP + ((('twist', 'linear', 'x'), 'd'),)}
 
 
-def _header(stamp_ns: int, frame_id: str):
-    """Return a std_msgs/Header at ``stamp_ns``."""
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    return _T['std_msgs/msg/Header'](
-        stamp=_T['builtin_interfaces/msg/Time'](sec=sec, nanosec=nanosec), frame_id=frame_id)
-
-
 def _vector3(x: float):
     """Return a geometry_msgs/Vector3 (x, 0, 0)."""
     return _T['geometry_msgs/msg/Vector3'](x=float(x), y=0.0, z=0.0)
@@ -65,17 +55,17 @@ def _vector3(x: float):
 def measurement_message(stamp_ns: int, frame_id: str, position_m: float, variance_m2: float):
     """Return the PoseWithCovarianceStamped the simulator publishes."""
     pose = odometry_message(stamp_ns, frame_id, '', [position_m], [[variance_m2]]).pose
-    return _T[POSE](header=_header(stamp_ns, frame_id), pose=pose)
+    return _T[POSE](header=header_message(stamp_ns, frame_id), pose=pose)
 
 
 def control_message(kind: str, stamp_ns: int, frame_id: str, value: float):
     """Return an AccelStamped or TwistStamped holding ``value`` along x."""
     zero = _vector3(0.0)
     if kind == ACCEL:
-        return _T[ACCEL](header=_header(stamp_ns, frame_id),
+        return _T[ACCEL](header=header_message(stamp_ns, frame_id),
                          accel=_T['geometry_msgs/msg/Accel'](linear=_vector3(value),
                                                              angular=zero))
-    return _T[TWIST](header=_header(stamp_ns, frame_id),
+    return _T[TWIST](header=header_message(stamp_ns, frame_id),
                      twist=_T['geometry_msgs/msg/Twist'](linear=_vector3(value), angular=zero))
 
 
@@ -88,32 +78,23 @@ class SimulationBag(AtomicBag):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
         if clock and CLOCK not in TYPESTORE.types:
             raise ValueError(f'publish_clock: the rosbags typestore has no {CLOCK}')
-        self.path = Path(path)
-        self.single_file = self.path.suffix == '.mcap'
-        _check_target(self.path, self.single_file)
-        self._temporary = Path(tempfile.mkdtemp(prefix=f'.{self.path.name}.',
-                                                dir=self.path.parent))
-        self._written = self._temporary / (self.path.stem if self.single_file
-                                           else self.path.name)
-        self.control_type = None if control_name is None else CONTROL_TYPES[control_name]
-        prefix = '/'.join(part for part in namespace.split('/') if part)
-        prefix = '/' + prefix + '/' if prefix else '/'
-        topics = [('measurement', POSE), ('ground_truth', ODOMETRY)]
-        if self.control_type is not None:
-            topics.append(('control', self.control_type))
-        if truth_acceleration:
-            topics.append(('ground_truth_accel', ACCEL))
-        if clock:
-            topics.append(('/clock', CLOCK))
+        self._start(path)
         try:
-            self._writer = Writer(self._written, version=9, storage_plugin=StoragePlugin.MCAP)
-            self._writer.open()
+            self.control_type = None if control_name is None else CONTROL_TYPES[control_name]
+            prefix = topic_prefix(namespace)
+            topics = [('measurement', POSE), ('ground_truth', ODOMETRY)]
+            if self.control_type is not None:
+                topics.append(('control', self.control_type))
+            if truth_acceleration:
+                topics.append(('ground_truth_accel', ACCEL))
+            if clock:
+                topics.append(('/clock', CLOCK))
             self._connections = {
                 name.lstrip('/'): (self._writer.add_connection(
                     name if name.startswith('/') else prefix + name, kind,
                     typestore=TYPESTORE), kind) for name, kind in topics}
         except BaseException:
-            shutil.rmtree(self._temporary, ignore_errors=True)
+            self.abort()
             raise
         self.counts = dict.fromkeys(self._connections, 0)
         self._appender = MessageAppender(self._writer)

@@ -32,7 +32,7 @@ docs/presets.md), or None.
 
 from typing import Mapping, NamedTuple, Optional
 
-from kf_train.filters import as_finite_array
+from kf_train.filters import as_non_negative, as_positive, as_scalar
 from kf_train.presets import load_preset
 from kf_train.sim.scenarios import robot_position_m
 from kf_train.sim.simulation import TrainSimulation
@@ -72,22 +72,6 @@ class ScenarioSample(NamedTuple):
     """The true acceleration at t_s (ACCELERATION_SCENARIOS), else None."""
 
 
-def _scalar(name: str, value) -> float:
-    """Return a finite scalar."""
-    array = as_finite_array(name, value)
-    if array.ndim != 0:
-        raise ValueError(f'{name} must be a scalar, got shape {array.shape}')
-    return float(array)
-
-
-def _non_negative(name: str, value) -> float:
-    """Return a finite scalar >= 0."""
-    value = _scalar(name, value)
-    if value < 0.0:
-        raise ValueError(f'{name} must be >= 0, got {value}')
-    return value
-
-
 def _sqrt_psd(Q: np.ndarray) -> np.ndarray:
     """Return L with L Lᵀ = Q: sqrt of the diagonal when Q is diagonal (as the seed draws)."""
     if np.count_nonzero(Q - np.diag(np.diag(Q))) == 0:
@@ -103,19 +87,16 @@ class CarStream:
                  initial_position_m: float = 0.2, initial_velocity_mps: float = 0.0,
                  acceleration_mps2: float = CAR_ACCELERATION_MPS2, exact: bool = False):
         """Set up the truth x0 = [position, velocity] and the seeded generator."""
-        rate_hz = _scalar('rate_hz', rate_hz)
-        if rate_hz <= 0.0:
-            raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
-        self.rate_hz = rate_hz
-        self.noise_std_m = _non_negative('noise_std_m', noise_std_m)
-        self.acceleration_mps2 = _scalar('acceleration_mps2', acceleration_mps2)
+        self.rate_hz = as_positive('rate_hz', rate_hz)
+        self.noise_std_m = as_non_negative('noise_std_m', noise_std_m)
+        self.acceleration_mps2 = as_scalar('acceleration_mps2', acceleration_mps2)
         dynamics = load_preset('car-exact' if exact else 'car').dynamics
-        dt = 1.0 / rate_hz
+        dt = 1.0 / self.rate_hz
         self._F = dynamics.F(dt)
         self._Bu = dynamics.control(dt)[:, 0] * self.acceleration_mps2
         self._L = _sqrt_psd(dynamics.Q(dt))
-        self._x = np.array([_scalar('initial_position_m', initial_position_m),
-                            _scalar('initial_velocity_mps', initial_velocity_mps)])
+        self._x = np.array([as_scalar('initial_position_m', initial_position_m),
+                            as_scalar('initial_velocity_mps', initial_velocity_mps)])
         self._rng = np.random.default_rng(seed)
         self._index = 0
 
@@ -137,13 +118,10 @@ class RobotStream:
                  initial_position_m: float = 0.0,
                  speed_noise_std_mps: float = ROBOT_SPEED_STD_MPS, seed_lag: bool = True):
         """Set up the trajectory, the sensors and the seeded generator."""
-        rate_hz = _scalar('rate_hz', rate_hz)
-        if rate_hz <= 0.0:
-            raise ValueError(f'rate_hz must be > 0, got {rate_hz}')
-        self.rate_hz = rate_hz
-        self.noise_std_m = _non_negative('noise_std_m', noise_std_m)
-        self.speed_noise_std_mps = _non_negative('speed_noise_std_mps', speed_noise_std_mps)
-        self.initial_position_m = _scalar('initial_position_m', initial_position_m)
+        self.rate_hz = as_positive('rate_hz', rate_hz)
+        self.noise_std_m = as_non_negative('noise_std_m', noise_std_m)
+        self.speed_noise_std_mps = as_non_negative('speed_noise_std_mps', speed_noise_std_mps)
+        self.initial_position_m = as_scalar('initial_position_m', initial_position_m)
         self.seed_lag = bool(seed_lag)
         self._rng = np.random.default_rng(seed)
         self._index = 0
@@ -189,7 +167,7 @@ class TrainStream:
     @noise_std_m.setter
     def noise_std_m(self, value: float) -> None:
         """Set the measurement noise σ [m] for the next samples."""
-        self.simulation.noise_std_m = _non_negative('noise_std_m', value)
+        self.simulation.noise_std_m = as_non_negative('noise_std_m', value)
 
     def next_sample(self) -> ScenarioSample:
         """Return the next train sample."""

@@ -9,7 +9,7 @@ they are drawn one by one (the node) or all at once (offline).
 
 from typing import NamedTuple, Optional
 
-from kf_train.filters import as_finite_array
+from kf_train.filters import as_non_negative, as_positive, as_scalar
 import numpy as np
 
 
@@ -32,13 +32,6 @@ class TrainSeries(NamedTuple):
     measured_position_m: np.ndarray
 
 
-def _finite_scalar(name: str, value) -> float:
-    array = as_finite_array(name, value)
-    if array.ndim != 0:
-        raise ValueError(f'{name} must be a scalar, got shape {array.shape}')
-    return float(array)
-
-
 class TrainSimulation:
     """Generates seed-000 style train samples, reproducibly from a seed."""
 
@@ -46,14 +39,10 @@ class TrainSimulation:
                  noise_std_m: float = 1.0, rate_hz: float = 10.0,
                  seed: Optional[int] = None):
         """Configure the truth and the sensor; ``seed`` None draws fresh entropy."""
-        self.initial_position_m = _finite_scalar('initial_position_m', initial_position_m)
-        self.velocity_mps = _finite_scalar('velocity_mps', velocity_mps)
-        self.noise_std_m = _finite_scalar('noise_std_m', noise_std_m)
-        if self.noise_std_m < 0.0:
-            raise ValueError(f'noise_std_m must be >= 0, got {self.noise_std_m}')
-        self.rate_hz = _finite_scalar('rate_hz', rate_hz)
-        if self.rate_hz <= 0.0:
-            raise ValueError(f'rate_hz must be > 0, got {self.rate_hz}')
+        self.initial_position_m = as_scalar('initial_position_m', initial_position_m)
+        self.velocity_mps = as_scalar('velocity_mps', velocity_mps)
+        self.noise_std_m = as_non_negative('noise_std_m', noise_std_m)
+        self.rate_hz = as_positive('rate_hz', rate_hz)
         if seed is not None and (not isinstance(seed, (int, np.integer)) or seed < 0):
             raise ValueError(f'seed must be a non-negative integer or None, got {seed!r}')
         self.seed = seed

@@ -2,17 +2,17 @@
 The 2-state step and the white-noise Q(dt) have one home each; their copies equal it.
 
 kf_train.filters.closed_form is the written-out predict and correct; the hot loops
-(FastTrainFilter.step/run, the fleet's kernel) transcribe it inline, and the estimator's
-closed-form adapter calls it. models.white_noise_terms is the white-noise Q(dt); the
-presets' continuous noise and the fleet use it (or its array form). All are held here
-bit for bit: the same operations in the same order give the same doubles.
+(FastTrainFilter.step/run) transcribe it inline, and the estimator's closed-form adapter
+calls it. models.white_noise_terms is the white-noise Q(dt); the presets' continuous
+noise uses its integrals. All are held here bit for bit: the same operations in the
+same order give the same doubles. The bank (the generic n-state arithmetic, vectorised
+across objects) is held to it to rounding.
 """
 
-from kf_train.batch import TrainFleet
+from kf_train.batch import run_bank
 from kf_train.estimator import EstimatorSettings, StreamEstimator
 from kf_train.filters import (
-    closed_form, FastTrainFilter, white_noise_terms, white_noise_terms_into,
-    WhiteNoiseAcceleration)
+    closed_form, FastTrainFilter, NS_PER_S, white_noise_terms, WhiteNoiseAcceleration)
 from kf_train.presets import preset_from_mapping
 import numpy as np
 
@@ -55,16 +55,27 @@ def test_fast_step_and_run_are_closed_form_bit_for_bit():
             posterior)
 
 
-def test_fleet_kernel_is_closed_form_bit_for_bit():
-    """Every filter of a fleet stepped with a shared dt equals closed_form exactly."""
+def test_the_bank_is_closed_form_to_rounding():
+    """Every object of a bank of trains (the generic Joseph form) equals closed_form to 1e-12."""
     cases = list(_cases(2, 500))
-    for dt in (0.1, 0.37):
-        x0 = np.array([c[0][:2] for c in cases])
-        P0 = np.array([[[c[0][2], c[0][3]], [c[0][3], c[0][4]]] for c in cases])
-        fleet = TrainFleet(x0, P0, WhiteNoiseAcceleration(Q_DENSITY))
-        fleet.step(np.array([c[1] for c in cases]), dt, np.array([c[3] for c in cases]))
-        for i, (state, z, _, R) in enumerate(cases):
-            assert fleet.filter_state(i) == _reference(state, z, dt, R)[0]
+    state = (3.0, 5.0, 4.0, 0.5, 1.0)
+    preset = preset_from_mapping({
+        'name': 'white-noise', 'states': ['position', 'velocity'],
+        'measurements': ['position'], 'motion': 'constant_velocity',
+        'process_noise': {'continuous': [[0.0, 0.0], [0.0, Q_DENSITY]]},
+        'R': [[0.25]], 'initial_state': state[:2],
+        'initial_covariance': [[state[2], state[3]], [state[3], state[4]]],
+        'nominal_period_s': 0.1})
+    # One row per object, each at its own time (whole nanoseconds: the bank's dt).
+    t = (np.rint(np.array([c[2] for c in cases]) * NS_PER_S) + 1.0) / NS_PER_S
+    z = np.array([[c[1]] for c in cases])
+    result = run_bank(preset, t, z, None, np.arange(len(cases)))
+    for i, dt in enumerate(t.tolist()):
+        posterior, update = _reference(state, float(z[i, 0]), dt, 0.25)
+        ours = (result.x[i, 0], result.x[i, 1], result.P[i, 0, 0], result.P[i, 0, 1],
+                result.P[i, 1, 1])
+        # Rounding only: the Joseph form and numpy's dt³ against the reduced form.
+        np.testing.assert_allclose(ours, posterior, rtol=1e-12, atol=1e-12)
 
 
 def test_the_estimators_closed_form_is_closed_form_bit_for_bit():
@@ -90,7 +101,7 @@ def test_the_estimators_closed_form_is_closed_form_bit_for_bit():
 
 
 def test_white_noise_q_has_one_home():
-    """Q(dt) of models, of the presets' continuous noise and of the fleet's array form agree."""
+    """Q(dt) of models and of the presets' continuous noise agree."""
     rng = np.random.default_rng(4)
     dts = np.concatenate([[0.0, 0.1, 0.2, 1.0, 2.5], rng.exponential(0.5, 200)])
     preset = preset_from_mapping({
@@ -100,8 +111,6 @@ def test_white_noise_q_has_one_home():
         'R': [[1.0]], 'initial_state': [0.0, 0.0], 'initial_covariance': [1.0, 1.0],
         'nominal_period_s': 0.1})
     batch = preset.dynamics.Q_batch(dts)
-    scratch = [np.empty(dts.shape[0]) for _ in range(3)]
-    into = white_noise_terms_into(Q_DENSITY, dts, scratch)
     for k, dt in enumerate(dts.tolist()):
         q00, q01, q11 = white_noise_terms(Q_DENSITY, dt)
         Q = WhiteNoiseAcceleration(Q_DENSITY)(dt)
@@ -116,7 +125,3 @@ def test_white_noise_q_has_one_home():
         np.testing.assert_allclose([batch[k, 0, 0], batch[k, 0, 1], batch[k, 1, 0]],
                                    [q00, q01, q01], rtol=tolerance, atol=0.0)
         assert batch[k, 1, 1] == q11
-        # The fleet's dt·dt·dt rounds twice where pow rounds once (< 0.52 ulp): with the
-        # same division and product after, a few ulps at most; the same bound holds.
-        np.testing.assert_allclose([into[0][k], into[1][k], into[2][k]], [q00, q01, q11],
-                                   rtol=tolerance, atol=0.0)
