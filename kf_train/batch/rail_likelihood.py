@@ -36,7 +36,7 @@ import math
 from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch.noise_likelihood import Segment
-from kf_train.filters import RailModel, RailModelParameters, RateTransition
+from kf_train.filters import first_jump_row, RailModel, RailModelParameters, RateTransition
 import numpy as np
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -143,9 +143,10 @@ def _transition(base: np.ndarray, params: RailModelParameters, brake_rates: np.n
     """
     Return Π(dt) per setting (K, 4, 4): the fixed rates, brake → stand scaled by P(slow).
 
-    As RailModel._transition_matrix: the brake row's stand rate is stop_rate ·
-    P(v <= stop_speed) under the brake regime's estimate; Π_ii = e^(−r_i dt),
-    Π_ij = (1 − e^(−r_i dt)) r_ij / r_i.
+    As RailModel.transition: the brake row's stand rate is stop_rate ·
+    P(v <= stop_speed) under the brake regime's estimate; the row is
+    :func:`~kf_train.filters.first_jump_row` (Π_ii = e^(−r_i dt),
+    Π_ij = (1 − e^(−r_i dt)) r_ij / r_i), per setting.
     """
     count = means.shape[0]
     v = means[:, BRAKE, 1]
@@ -156,13 +157,8 @@ def _transition(base: np.ndarray, params: RailModelParameters, brake_rates: np.n
         slow[spread] = _normal_cdf((params.stop_speed_mps - v[spread]) / std[spread])
     rates = np.repeat(brake_rates[None], count, axis=0)       # (K, 4), brake's own 0
     rates[:, STAND] = params.stop_rate_hz * slow
-    leave = rates.sum(axis=1)                                 # r_i
-    stay = np.exp(-leave * dt_s)                              # Π_ii = e^(−r_i dt)
-    share = rates / np.where(leave > 0.0, leave, 1.0)[:, None]  # r_ij / r_i (0 if r_i = 0)
-    row = (1.0 - stay)[:, None] * share                       # Π_ij = (1 − e^(−r_i dt)) r_ij / r_i
-    row[:, BRAKE] = stay
     matrix = np.repeat(base[None], count, axis=0)
-    matrix[:, BRAKE] = row
+    matrix[:, BRAKE] = first_jump_row(rates, BRAKE, dt_s)     # Π(dt)'s one formula
     return matrix
 
 
