@@ -36,7 +36,7 @@ from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
 from kf_train.filters.rail_model import (
-    make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES)
+    make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES, stop_probability)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
     RegularisedSnapshot, tempering_step)
@@ -68,6 +68,7 @@ __all__ = [
     'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
     'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
     'robust_cholesky', 'seconds_to_ns', 'Snapshot', 'SquareRoot', 'STATE_NAMES', 'StepModel',
+    'stop_probability',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
     'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
     'white_noise_integrals', 'white_noise_terms', 'white_noise_terms_into',

@@ -187,6 +187,21 @@ def _normal_cdf(x: float) -> float:
     return 0.5 * math.erfc(-x / math.sqrt(2.0))
 
 
+def stop_probability(v, std, stop_speed_mps: float):
+    """
+    Return P(velocity <= stop_speed_mps) for a velocity ~ N(v, std²): THE stop rule.
+
+    A braking train switches to stand at stop_rate_hz times this. ``v`` and ``std``
+    are floats, or arrays (one per setting, the tuner's), computed element by element
+    with the same float arithmetic.
+    """
+    if type(v) is not float:
+        return np.array([stop_probability(a, b, stop_speed_mps)
+                         for a, b in zip(v.tolist(), std.tolist())])
+    return (1.0 if v <= stop_speed_mps else 0.0) if std == 0.0 else \
+        _normal_cdf((stop_speed_mps - v) / std)
+
+
 class RailModel(IMM):
     """
     The four-regime rail IMM (pure: states in, states out); see the module docstring.
@@ -213,11 +228,14 @@ class RailModel(IMM):
 
     def _slow(self, state: IMMState) -> float:
         """Return P(v <= stop_speed_mps) under the brake regime's estimate."""
-        params = self.parameters
-        v = float(state.means[BRAKE, 1])
-        std = math.sqrt(max(float(state.covariances[BRAKE, 1, 1]), 0.0))
-        return (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
-            _normal_cdf((params.stop_speed_mps - v) / std)
+        return stop_probability(float(state.means[BRAKE, 1]),
+                                math.sqrt(max(float(state.covariances[BRAKE, 1, 1]), 0.0)),
+                                self.parameters.stop_speed_mps)
+
+    @property
+    def entry_rule(self) -> EntryGather:
+        """Return the entry rule's tables (sources, factors, noises of ℓ per regime)."""
+        return self._entry
 
     def _for_dt(self, dt_s: float) -> tuple:
         """Return (F, Q, Fᵀ, Π without brake -> stand) for dt_s, computed once per dt_s."""

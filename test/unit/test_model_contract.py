@@ -188,3 +188,15 @@ def test_the_offline_series_runs_on_the_one_imm_running_state():
     assert filt.update([5.2]).nis == result.nis
     np.testing.assert_array_equal(filt.mean, copy.mean)
     assert copy._running is not filt._running
+
+
+def test_one_stop_rule_for_the_node_and_the_tuner():
+    """The stop rule of arrays (the tuner's settings) is the floats' element by element."""
+    from kf_train.filters import stop_probability
+    v = np.array([0.05, 15.0, 0.3, 0.2, -1.0])
+    std = np.array([0.1, 0.2, 0.0, 0.0, 1e-3])
+    many = stop_probability(v, std, 0.3)
+    one_by_one = [stop_probability(a, b, 0.3) for a, b in zip(v.tolist(), std.tolist())]
+    assert many.tolist() == one_by_one
+    assert many[1] == 0.0 and many[2] == 1.0 and many[4] == 1.0
+    assert many[0] == pytest.approx(0.9938, abs=1e-4)                  # Φ(2.5)
