@@ -200,3 +200,26 @@ def test_one_stop_rule_for_the_node_and_the_tuner():
     assert many.tolist() == one_by_one
     assert many[1] == 0.0 and many[2] == 1.0 and many[4] == 1.0
     assert many[0] == pytest.approx(0.9938, abs=1e-4)                  # Φ(2.5)
+
+
+@pytest.mark.parametrize('preset', ['rail', 'train', 'cv-position-velocity'])
+def test_r_keeps_one_shape_from_the_parameter_to_the_update(preset):
+    """The override becomes the (m, m) R the model's update gets, unchanged on the way."""
+    settings = EstimatorSettings(preset=preset, gate_probability=1.0, measurement_variance=2.0,
+                                 measurement_velocity_variance=3.0)
+    estimator = StreamEstimator(settings)
+    seen = []
+    step = estimator.model.predict_update
+
+    def spied(x, P, dt_s, z, R=None):
+        seen.append(R)
+        return step(x, P, dt_s, z, R)
+    estimator.model.predict_update = spied
+    velocity = {'velocity_mps': 1.0, 'velocity_variance_m2s2': 0.5} if \
+        estimator.model.dim_z == 2 else {}
+    estimator.process(NS_PER_S, 1.0, 0.5, **velocity)
+    estimator.process(2 * NS_PER_S, 2.0, 0.5, **velocity)
+    (R,) = seen
+    expected = estimator.measurement_noise(0.5, 0.5 if velocity else None)
+    assert type(R) is np.ndarray and R.shape == (estimator.model.dim_z,) * 2
+    assert R.tolist() == expected.tolist() and R[0, 0] == 2.0
