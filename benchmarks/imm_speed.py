@@ -116,8 +116,7 @@ def main(argv=None) -> int:
     before, ahead_before = _time_model(_reference_model(), t, z, args.block)
     now, ahead_now = _time_model(RailModel(), t, z, args.block)
     adapter = _time_adapter(RailModel(), t, z, 10)
-    fused = _time_adapter(RailModel(), t, z, 10, fused=True) \
-        if hasattr(IMMModel, 'predict_update') else float('nan')
+    fused = _time_adapter(RailModel(), t, z, 10, fused=True)
     print(f'rail IMM, {t.size} measurements of a metro run, dt = 0.1 s; µs per measurement, '
           f'best block of {args.block}')
     print(f'{"":22}{"predict":>10}{"update":>10}{"2-s ahead":>11}{"total":>10}')

@@ -36,10 +36,10 @@ import math
 from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch.noise_likelihood import Segment
-from kf_train.filters import RailModel, RailModelParameters, RateTransition
+from kf_train.filters import (
+    first_jump_row, LOG_2PI, RailModel, RailModelParameters, RateTransition, stop_probability)
 import numpy as np
 
-LOG_2PI = math.log(2.0 * math.pi)
 STAND, ACCELERATE, CRUISE, BRAKE = range(4)
 RAIL_NOISE_FIELDS = ('acceleration_noise', 'command_noise', 'capability_noise')
 """The RailModelParameters a :class:`RailNoise` varies (they only change Q)."""
@@ -119,23 +119,20 @@ class _UnitModels:
         return unit
 
 
-def _entry(params: RailModelParameters):
+def _entry(model: RailModel):
     """
     Return (rows (4, 6), rows², W (4,)) of RailModel.entry for the four regimes.
 
     Entering regime j is x' = T_j x + w: T_j is the identity with ℓ's row replaced by
-    ``rows[j]`` (A's for accelerate, −B's for brake, zeros otherwise) and w ~ N(0, W_j).
+    ``rows[j]`` (A's for accelerate, −B's for brake, zeros otherwise) and w ~ N(0, W_j):
+    the node's rule, :attr:`RailModel.entry_rule`, as rows.
     """
+    rule = model.entry_rule
     rows = np.zeros((4, 6))
-    rows[ACCELERATE, 4] = 1.0                                 # ℓ = A + w
-    rows[BRAKE, 5] = -1.0                                     # ℓ = −B + w
-    plateau, cruise = params.plateau_std_mps2 ** 2, params.cruise_std_mps2 ** 2
-    return rows, rows * rows, np.array([0.0, plateau, cruise, plateau])
-
-
-def _normal_cdf(x: np.ndarray) -> np.ndarray:
-    """Return Φ(x) elementwise (math.erfc; numpy has none)."""
-    return np.array([0.5 * math.erfc(-v / math.sqrt(2.0)) for v in x.tolist()])
+    for j, (source, factor) in enumerate(zip(rule.sources, rule.factors)):
+        if source is not None:
+            rows[j, source] = factor                          # ℓ = A + w, ℓ = −B + w
+    return rows, rows * rows, np.array(rule.noises)
 
 
 def _transition(base: np.ndarray, params: RailModelParameters, brake_rates: np.ndarray,
@@ -143,26 +140,18 @@ def _transition(base: np.ndarray, params: RailModelParameters, brake_rates: np.n
     """
     Return Π(dt) per setting (K, 4, 4): the fixed rates, brake → stand scaled by P(slow).
 
-    As RailModel._transition_matrix: the brake row's stand rate is stop_rate ·
-    P(v <= stop_speed) under the brake regime's estimate; Π_ii = e^(−r_i dt),
-    Π_ij = (1 − e^(−r_i dt)) r_ij / r_i.
+    As RailModel.transition: the brake row's stand rate is stop_rate ·
+    P(v <= stop_speed) under the brake regime's estimate; the row is
+    :func:`~kf_train.filters.first_jump_row` (Π_ii = e^(−r_i dt),
+    Π_ij = (1 − e^(−r_i dt)) r_ij / r_i), per setting.
     """
     count = means.shape[0]
-    v = means[:, BRAKE, 1]
-    std = np.sqrt(np.maximum(covs[:, BRAKE, 1, 1], 0.0))
-    slow = np.where(v <= params.stop_speed_mps, 1.0, 0.0)
-    spread = std > 0.0
-    if np.any(spread):
-        slow[spread] = _normal_cdf((params.stop_speed_mps - v[spread]) / std[spread])
+    slow = stop_probability(means[:, BRAKE, 1], np.sqrt(np.maximum(covs[:, BRAKE, 1, 1], 0.0)),
+                            params.stop_speed_mps)
     rates = np.repeat(brake_rates[None], count, axis=0)       # (K, 4), brake's own 0
     rates[:, STAND] = params.stop_rate_hz * slow
-    leave = rates.sum(axis=1)                                 # r_i
-    stay = np.exp(-leave * dt_s)                              # Π_ii = e^(−r_i dt)
-    share = rates / np.where(leave > 0.0, leave, 1.0)[:, None]  # r_ij / r_i (0 if r_i = 0)
-    row = (1.0 - stay)[:, None] * share                       # Π_ij = (1 − e^(−r_i dt)) r_ij / r_i
-    row[:, BRAKE] = stay
     matrix = np.repeat(base[None], count, axis=0)
-    matrix[:, BRAKE] = row
+    matrix[:, BRAKE] = first_jump_row(rates, BRAKE, dt_s)     # Π(dt)'s one formula
     return matrix
 
 
@@ -251,7 +240,7 @@ def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innov
     covs = np.tile(base.initial_covariance(1.0), (count, 4, 1, 1))
     covs[:, :, 0, 0] = R[:, None]
     probabilities = np.full((count, 4), 0.25)
-    entry, rates = _entry(base), RateTransition(base.rates())
+    entry, rates = _entry(RailModel(base)), RateTransition(base.rates())
     brake_rates = base.rates()[BRAKE]
     identity = np.tile(np.eye(6), (count, 4, 1, 1))
     units, bases = _UnitModels(base), {}

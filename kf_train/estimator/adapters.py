@@ -1,8 +1,9 @@
 """
-Step adapters: every filter kind as a pure ``predict(x, P, dt, u)``/``update(x, P, z, R)``.
+Step adapters: every filter kind as a :class:`~kf_train.filters.contract.StepModel`.
 
 The estimator keeps its states as (x, P) pairs and rewinds by going back to an older
-pair, so it needs models without state of their own. :func:`make_model` picks one:
+pair, so it needs models without state of their own: pure ``predict``, ``update``,
+``predict_update`` and ``predict_ahead`` (the contract). :func:`make_model` picks one:
 
 * the preset's linear model with F(dt), Q(dt) and B(dt) cached per dt
   (:class:`_CachedModel`), plus a white-noise acceleration if one is set;
@@ -22,8 +23,8 @@ import weakref
 from kf_train.estimator.imm_model import IMMModel
 from kf_train.filters import (
     closed_form, constant_velocity_model, LinearModel, PARTICLE_KINDS, ParticleFilter,
-    RegularisedParticleFilter, UnscentedModel, UpdateResult, white_noise_terms,
-    WhiteNoiseAcceleration)
+    PredictThenUpdate, RegularisedParticleFilter, StepModel, UnscentedModel, UpdateResult,
+    white_noise_terms, WhiteNoiseAcceleration)
 from kf_train.presets import Preset, RailPreset
 import numpy as np
 
@@ -62,7 +63,7 @@ class _CachedModel(LinearModel):
         return cached
 
 
-class _FastTrainModel:
+class _FastTrainModel(PredictThenUpdate):
     """
     Seed 000's train model with ``predict``/``update`` in closed form on plain floats.
 
@@ -115,6 +116,9 @@ class _FastTrainModel:
             raise ValueError('prediction produced a non-finite state; inputs are too large')
         return np.array((x0, x1)), np.array(((p00, p01), (p01, p11)))
 
+    # The look-ahead is the prediction (bound directly: one call less on the hot path).
+    predict_ahead = predict
+
     def update(self, x, P, z, R=None) -> Tuple[np.ndarray, np.ndarray, UpdateResult]:
         """Return (x, P, UpdateResult) after position measurement z of variance R."""
         x0, x1 = x.tolist()
@@ -138,9 +142,9 @@ class _FastTrainModel:
                              np.array(((k0,), (k1,)))))
 
 
-class _ParticleModel:
+class _ParticleModel(PredictThenUpdate):
     """
-    A particle filter behind the pure ``predict(x, P, dt, u)``/``update`` interface.
+    A particle filter behind the pure model contract (predict_update: predict, update).
 
     The estimator keeps states as (x, P) and rewinds by going back to an older pair.
     Each mean this model returns stands for its particles: their snapshot (particles,
@@ -206,7 +210,8 @@ class _ParticleModel:
 
 
 def make_model(settings, preset: Union[Preset, RailPreset],
-               particle_states: Optional[Dict[int, object]] = None, fast: bool = True):
+               particle_states: Optional[Dict[int, object]] = None,
+               fast: bool = True) -> StepModel:
     """
     Return the filter's pure model: the preset's, plus white-noise acceleration q if set.
 

@@ -33,28 +33,54 @@ RESET_REASONS = ('manual', 'set_state', 'clock_jump', 'stream_restart', 'outlier
 """Why the filter was reset; keys of :attr:`EstimatorStats.resets`."""
 
 
-class EstimateStep(NamedTuple):
-    """The filter's output after one measurement (or one late control)."""
+class _EstimateStepFields(NamedTuple):
+    """The fields of :class:`EstimateStep`, in their (internal) order."""
 
     stamp_ns: int
     """Time of x and P: the newest fused stamp (later than the measurement's if replayed)."""
     x: np.ndarray
+    """The estimate at ``stamp_ns``."""
     P: np.ndarray
+    """Its covariance."""
     update: Optional[UpdateResult]
     """The measurement's innovation; None when it initialised the filter (first_measurement)
     or when a late control caused the step."""
     prediction_stamp_ns: int
+    """Time of the prediction: ``stamp_ns`` plus the horizon."""
     predicted_x: np.ndarray
+    """The estimate predicted to ``prediction_stamp_ns`` (the model's predict_ahead)."""
     predicted_P: np.ndarray
-    measurement_stamp_ns: int = 0
+    """Its covariance."""
+    measurement_stamp_ns: int
     """The fused measurement's own stamp (0 for a step caused by a control)."""
-    replayed: int = 0
+    replayed: int
     """How many fused measurements were replayed after this out-of-sequence one (or
     recomputed with a late control)."""
-    reset: Optional[str] = None
+    reset: Optional[str]
     """A reset this measurement triggered before initialising the filter (stream_restart)."""
-    control_stamp_ns: int = 0
+    control_stamp_ns: int
     """The late control that caused this step, or 0 for a measurement's step."""
+
+
+class EstimateStep(_EstimateStepFields):
+    """
+    The filter's output after one measurement (or one late control), built by keywords.
+
+    Fields are read by name (``step.x``, ``step.predicted_P``, ...); ``_replace``
+    returns a changed copy. The last four default to 0, 0, None and 0.
+    """
+
+    __slots__ = ()
+
+    def __new__(cls, *, stamp_ns: int, x: np.ndarray, P: np.ndarray,
+                update: Optional[UpdateResult], prediction_stamp_ns: int,
+                predicted_x: np.ndarray, predicted_P: np.ndarray,
+                measurement_stamp_ns: int = 0, replayed: int = 0, reset: Optional[str] = None,
+                control_stamp_ns: int = 0) -> 'EstimateStep':
+        """Return the step of these fields (keywords only: 11 positions are unreadable)."""
+        return tuple.__new__(cls, (stamp_ns, x, P, update, prediction_stamp_ns, predicted_x,
+                                   predicted_P, measurement_stamp_ns, replayed, reset,
+                                   control_stamp_ns))
 
 
 class Rejected(ValueError):
@@ -123,6 +149,22 @@ def override_variance(override: float, message_variance: float) -> float:
     return float(message_variance)
 
 
+def measurement_noise(settings, variance_m2: float,
+                      velocity_variance_m2s2: Optional[float] = None) -> np.ndarray:
+    """
+    Return the R (m, m) a message's variances are fused with: THE estimator's R.
+
+    Each override (``measurement_variance``, ``measurement_velocity_variance``, when
+    > 0) replaces the message's variance; a velocity variance makes R 2x2 (diagonal).
+    This array, checked by :func:`check_measurement`, is what the model's update gets.
+    """
+    R = override_variance(settings.measurement_variance, variance_m2)
+    if velocity_variance_m2s2 is None:
+        return np.array([[R]])
+    return np.array([[R, 0.0], [0.0, override_variance(
+        settings.measurement_velocity_variance, velocity_variance_m2s2)]])
+
+
 def check_stamp(stamp_ns) -> int:
     """Return the stamp as an int; raise ValueError unless it is an integer."""
     if not isinstance(stamp_ns, (int, np.integer)) or isinstance(stamp_ns, bool):
@@ -160,13 +202,15 @@ def check_measurement(settings, model, preset_name: str, max_future_ns: int,
             f'position, velocity and variances must be numbers, got {position_m!r}, '
             f'{variance_m2!r}, {velocity_mps!r}, {velocity_variance_m2s2!r}') from None
     position_m, variance_m2 = values[:2]
+    # R is built once, in the shape the update takes, and checked here (non-finite
+    # message variances are rejected before R is read).
+    R = measurement_noise(s, variance_m2, values[3] if measures_velocity else None)
     if not math.isfinite(position_m):
         raise Rejected('non_finite', f'position must be finite, got {position_m}')
     if not math.isfinite(variance_m2):
         raise Rejected('non_finite', f'measurement variance must be finite, got {variance_m2}')
-    R = override_variance(s.measurement_variance, variance_m2)
-    if R <= 0.0:
-        raise Rejected('bad_variance', f'measurement variance must be > 0, got {R}')
+    if R.item(0) <= 0.0:
+        raise Rejected('bad_variance', f'measurement variance must be > 0, got {R.item(0)}')
     if measures_velocity:
         velocity_mps, velocity_variance = values[2:]
         if not math.isfinite(velocity_mps):
@@ -174,14 +218,12 @@ def check_measurement(settings, model, preset_name: str, max_future_ns: int,
         if not math.isfinite(velocity_variance):
             raise Rejected('non_finite',
                            f'velocity variance must be finite, got {velocity_variance}')
-        R_velocity = override_variance(s.measurement_velocity_variance, velocity_variance)
-        if R_velocity <= 0.0:
-            raise Rejected('bad_variance', f'velocity variance must be > 0, got {R_velocity}')
+        if R.item(3) <= 0.0:
+            raise Rejected('bad_variance', f'velocity variance must be > 0, got {R.item(3)}')
+        _check_time('', stamp_ns, now_ns, max_future_ns, s.max_future_s)
+        return np.array([position_m, velocity_mps]), R
     _check_time('', stamp_ns, now_ns, max_future_ns, s.max_future_s)
-    if measures_velocity:
-        return (np.array([position_m, velocity_mps]),
-                np.array([[R, 0.0], [0.0, R_velocity]]))
-    return np.array([position_m]), np.array([[R]])
+    return np.array([position_m]), R
 
 
 def check_control(preset, max_future_ns: int, max_future_s: float, stamp_ns: int, u,

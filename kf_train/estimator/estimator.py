@@ -129,7 +129,7 @@ from typing import Optional, Tuple
 
 from kf_train.estimator.contract import (
     check_control, check_measurement, check_stamp, EstimateStep, EstimatorStats,
-    override_variance, Rejected, RESET_REASONS)
+    measurement_noise, override_variance, Rejected, RESET_REASONS)
 from kf_train.estimator.fusion import Fusion
 from kf_train.estimator.history import History
 from kf_train.estimator.settings import Configuration, configure, EstimatorSettings
@@ -243,6 +243,11 @@ class StreamEstimator:
         fusion = self._fusion
         return fusion.counters.snapshot(
             len(fusion.history), 0 if fusion.controls is None else len(fusion.controls))
+
+    def measurement_noise(self, variance_m2: float,
+                          velocity_variance_m2s2: Optional[float] = None) -> np.ndarray:
+        """Return the R (m, m) a message's variances are fused with (the overrides applied)."""
+        return measurement_noise(self.settings, variance_m2, velocity_variance_m2s2)
 
     def measurement_variance(self, message_variance_m2: float) -> float:
         """Return R of the position: the override when set, else the message's variance."""

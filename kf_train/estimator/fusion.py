@@ -131,9 +131,11 @@ class Fusion:
         self.counters.controls_late += 1
         self._accept_control()
         newest = self.last_stamp_ns
-        return EstimateStep(newest, outcome.x.copy(), outcome.P.copy(), None,
-                            newest + self.config.horizon_ns, outcome.predicted[0],
-                            outcome.predicted[1], 0, outcome.replayed, None, stamp_ns)
+        return EstimateStep(stamp_ns=newest, x=outcome.x.copy(), P=outcome.P.copy(),
+                            update=None, prediction_stamp_ns=newest + self.config.horizon_ns,
+                            predicted_x=outcome.predicted[0],
+                            predicted_P=outcome.predicted[1], replayed=outcome.replayed,
+                            control_stamp_ns=stamp_ns)
 
     def _accept_control(self) -> None:
         """Count an accepted control; forget controls no longer needed. Return None."""
@@ -188,12 +190,12 @@ class Fusion:
         """Return (x, P, result, prediction ahead, exact) or reject as outlier/numerical."""
         model = self.config.model
         try:
-            if self.controls is None and hasattr(model, 'predict_update'):
-                # One call, the same numbers as predict then update (the rail IMM's:
-                # its state between the two is never combined into an (x, P)).
+            if self.controls is None:
+                # Every model's one call (StepModel.predict_update): the rail IMM's
+                # fused step, predict then update for the others.
                 x, P, result = model.predict_update(x0, P0, (t_b - t_a) / NS_PER_S, z, R)
                 u, exact = None, True
-            else:
+            else:  # the prediction split at the control stamps (controls.propagate)
                 x, P, u, exact = propagate(self.controls, model, x0, P0, t_a, t_b)
                 x, P, result = model.update(x, P, z, R)
         except NUMERICAL_ERRORS as error:
@@ -275,6 +277,7 @@ class Fusion:
               result: Optional[UpdateResult], predicted, measurement_stamp_ns: int,
               replayed: int = 0) -> EstimateStep:
         """Return the public EstimateStep (copies of the kept arrays)."""
-        return EstimateStep(stamp_ns, x.copy(), P.copy(), result,
-                            stamp_ns + self.config.horizon_ns, predicted[0], predicted[1],
-                            measurement_stamp_ns, replayed)
+        return EstimateStep(stamp_ns=stamp_ns, x=x.copy(), P=P.copy(), update=result,
+                            prediction_stamp_ns=stamp_ns + self.config.horizon_ns,
+                            predicted_x=predicted[0], predicted_P=predicted[1],
+                            measurement_stamp_ns=measurement_stamp_ns, replayed=replayed)

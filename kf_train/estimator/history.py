@@ -18,6 +18,7 @@ from typing import Callable, Iterator, List, NamedTuple, Optional, Sequence
 
 from kf_train.estimator.contract import NUMERICAL_ERRORS, Rejected
 from kf_train.estimator.controls import Controls, propagate
+from kf_train.filters import StepModel
 import numpy as np
 
 
@@ -27,7 +28,7 @@ class Entry(NamedTuple):
     stamp_ns: int
     z: np.ndarray
     R: np.ndarray
-    model: object
+    model: StepModel
     x: np.ndarray
     P: np.ndarray
     kind: str

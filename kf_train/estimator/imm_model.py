@@ -1,5 +1,5 @@
 """
-An IMM behind the pure ``predict(x, P, dt_s, u)`` / ``update(x, P, z, R)`` interface.
+An IMM behind the pure model contract (:class:`~kf_train.filters.contract.StepModel`).
 
 The streaming estimator (kf_train.estimator.estimator) keeps its state as (x, P) pairs and
 rewinds by going back to an older pair; its models are pure functions of (x, P).
@@ -10,7 +10,9 @@ particle filter's adapter in the estimator does the same with its particles). A 
 given a mean it returned continues from that state, so rewinding to an old (x, P)
 and replaying repeats the original steps bit for bit; a mean it never returned (an
 initialisation, ``set_state``) starts every mode at (x, P) with the initial mode
-probabilities. States are immutable, so remembering one costs a reference.
+probabilities. States are immutable, so remembering one costs a reference: it keeps no
+running state of its own (:class:`~kf_train.filters.IMMFilter` is the one that does).
+Its :meth:`IMMModel.predict_update` is the IMM's fused step, not predict then update.
 """
 
 from typing import Dict, Optional, Tuple
@@ -21,7 +23,7 @@ import numpy as np
 
 
 class IMMModel:
-    """Pure (x, P) steps of an IMM; see the module docstring."""
+    """Pure (x, P) steps of an IMM, a StepModel; see the module docstring."""
 
     def __init__(self, imm: IMM, H, R, state_names, measurement_names=('position',),
                  probabilities=None, states: Optional[Dict[int, tuple]] = None):

@@ -17,7 +17,7 @@ from kf_train.estimator.live_presets import (
     preset_defaults, resolve_preset)
 from kf_train.filters import (
     as_finite_array, as_vector, chi2_quantile, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
-    DEFAULT_PARTICLES, DEFAULT_RESAMPLE_THRESHOLD, FILTER_KINDS, seconds_to_ns)
+    DEFAULT_PARTICLES, DEFAULT_RESAMPLE_THRESHOLD, FILTER_KINDS, seconds_to_ns, StepModel)
 import numpy as np
 
 INITIALIZATIONS = ('first_measurement', 'prior')
@@ -230,10 +230,11 @@ class Configuration(NamedTuple):
 
     settings: EstimatorSettings
     preset: LivePreset
-    model: object
-    """The filter's pure ``predict(x, P, dt, u)``/``update(x, P, z, R)`` model."""
+    model: StepModel
+    """The filter's pure model (:class:`~kf_train.filters.contract.StepModel`)."""
     predict_ahead: Callable
-    """The model's prediction ahead (the particle filter's without draws)."""
+    """``model.predict_ahead`` (the particle filter's without draws, the rail IMM's
+    mixture), bound once."""
     initial_state: np.ndarray
     initial_covariance: np.ndarray
     nominal_period_s: float
@@ -280,8 +281,7 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
                       else settings.horizon_s)
     return Configuration(
         settings, preset, model,
-        # The particle filter predicts ahead with exact moments (no draws); others predict.
-        getattr(model, 'predict_ahead', model.predict),
+        model.predict_ahead,
         initial_state, initial_covariance, nominal_period_s, horizon_s,
         measured_states(preset), seconds_to_ns(settings.history_s),
         seconds_to_ns(settings.max_future_s), seconds_to_ns(horizon_s),

@@ -7,13 +7,15 @@ white-noise Q(dt) (:mod:`.models`), the 2-state step in closed form
 (:mod:`.ekf`), UKF (:mod:`.ukf`), particle filters (:mod:`.particle`, the bootstrap
 one, and :mod:`.regularised_pf`, the one that tracks range-bearing), the χ²
 distribution (:mod:`.chi2`), the input checks (:mod:`.validation`), time units
-(:mod:`.units`) and the family behind one interface (:mod:`.family`, make_filter).
+(:mod:`.units`), the family behind one interface (:mod:`.family`, make_filter), and
+the model contract the streaming estimator runs (:mod:`.contract`, StepModel).
 Other floors import from here, never from the modules.
 """
 
 from kf_train.filters import closed_form, kalman
 from kf_train.filters.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
 from kf_train.filters.closed_form import FastUpdate, noise_terms_function, NoiseModel
+from kf_train.filters.contract import PredictThenUpdate, StepModel
 from kf_train.filters.ekf import (
     ekf_update, ExtendedKalmanFilter, ExtendedModel, FunctionMeasurement, RangeBearing, TWO_PI,
     wrap_angle)
@@ -22,8 +24,8 @@ from kf_train.filters.family import (
     GaussianFilter, make_filter, PARTICLE_KINDS, ParticlePresetFilter)
 from kf_train.filters.fast import FastRun, FastTrainFilter
 from kf_train.filters.imm import (
-    check_transition_matrix, combine, FixedTransition, IMM, IMMFilter, IMMState, make_state,
-    RateTransition)
+    check_transition_matrix, combine, first_jump_row, FixedTransition, IMM, IMMFilter, IMMState,
+    make_state, RateTransition)
 from kf_train.filters.kalman import KalmanFilter, LOG_2PI, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
@@ -34,7 +36,7 @@ from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
 from kf_train.filters.rail_model import (
-    make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES)
+    make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES, stop_probability)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
     RegularisedSnapshot, tempering_step)
@@ -56,6 +58,7 @@ __all__ = [
     'ConstantVelocityModel', 'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA',
     'DEFAULT_PARTICLES', 'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter',
     'ExtendedModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
+    'first_jump_row',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
     'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter', 'keep_positive_definite',
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
@@ -63,10 +66,11 @@ __all__ = [
     'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
+    'PredictThenUpdate',
     'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
     'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
     'robust_cholesky', 'seconds_to_ns', 'seconds_to_ns_array', 'Snapshot', 'SquareRoot',
-    'STATE_NAMES',
+    'STATE_NAMES', 'StepModel', 'stop_probability',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
     'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
     'white_noise_integrals', 'white_noise_terms',

@@ -2,10 +2,12 @@
 The filter family behind one interface: KF, EKF, UKF and particle filter.
 
 ``make_filter(preset, kind)`` returns a :class:`Filter` for kind ``'kf'``, ``'ekf'``,
-``'ukf'``, ``'pf'`` or ``'bootstrap-pf'``, started at the preset's initial state. Every
-filter has the same streaming interface, which
-:func:`kf_train.batch.series.run_filter_series` (the replay's ``--filter``) and a
-streaming estimator both use:
+``'ukf'``, ``'pf'`` or ``'bootstrap-pf'``, started at the preset's initial state. A
+:class:`Filter` holds its state; every kind has the same interface, which the offline
+series (:func:`kf_train.batch.series.run_filter_series`, the replay's ``--filter``)
+uses. The streaming estimator keeps its states itself, as (x, P) pairs it can rewind
+to, so it runs the pure models a :class:`GaussianFilter` wraps (the model contract,
+:class:`~kf_train.filters.contract.StepModel`), not a :class:`Filter`. The interface:
 
 * ``predict(dt_s, u=None)``: propagate over dt_s [s] (u required iff the preset has a
   control input);

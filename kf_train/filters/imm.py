@@ -22,12 +22,14 @@ state object itself. :class:`IMM` holds the models and computes; :class:`IMMFilt
 holds a state and has the interface of :class:`kf_train.filters.family.Filter`
 (predict, update, predict_ahead, mean, covariance, snapshot, restore, reset, copy).
 
-Two hooks let a model use what it knows about its regimes (see
+Public hooks let a model use what it knows about its regimes (see :class:`IMM` and
 :mod:`kf_train.filters.rail_model`): ``transition(dt_s, state)`` may depend on the state
 (a train can only stop when it is slow), and ``entry(j, x, P)`` transforms a
 component that switches into mode j (a new regime brings its own commanded
-acceleration). Without them (:class:`FixedTransition` and no entry), the IMM is
-filterpy's ``IMMEstimator`` to rounding. Likelihoods are kept as logarithms, so a
+acceleration); ``mixing`` and ``matrices`` give the same numbers in fewer numpy calls.
+Without them (:class:`FixedTransition` and no entry), the IMM is filterpy's
+``IMMEstimator`` to rounding. Π(dt) of switching rates is written once,
+:func:`first_jump_row`. Likelihoods are kept as logarithms, so a
 mode whose likelihood underflows a float (filterpy then substitutes 2.2e-308) still
 gets its exact probability.
 """
@@ -37,11 +39,10 @@ from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.filters import imm_stack
 from kf_train.filters.imm_stack import frozen as _frozen, LinearStack
-from kf_train.filters.kalman import UpdateResult
+from kf_train.filters.kalman import LOG_2PI, UpdateResult
 from kf_train.filters.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
 
-_LOG_2PI = math.log(2.0 * math.pi)
 # Rows of a transition matrix must sum to 1 to within this.
 _ROW_SUM_TOLERANCE = 1e-9
 
@@ -110,6 +111,33 @@ class FixedTransition:
         return self.matrix
 
 
+def first_jump_row(rates, own: int, dt_s: float):
+    """
+    Return row ``own`` of Π(dt) for the rates out of mode ``own``: THE formula of Π(dt).
+
+    Π_ii = e^(-r_i dt), Π_ij = (1 - e^(-r_i dt)) · r_ij / r_i, r_i = Σ_j r_ij (j ≠ i;
+    the entry ``own`` is taken as 0). ``rates`` is one row as a list of floats (a new
+    list is returned: math.exp, one mode's row at every step of a jittered stream) or
+    K rows as a (K, N) array, one per setting (a new (K, N) array: numpy.exp).
+    """
+    if type(rates) is list:
+        rates[own] = 0.0
+        leave = sum(rates)                               # r_i
+        stay = math.exp(-leave * dt_s)                   # Π_ii = e^(-r_i dt)
+        # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
+        row = [(1.0 - stay) * (r / leave) if leave > 0.0 else 0.0 for r in rates]
+        row[own] = stay
+        return row
+    rates = rates.copy()
+    rates[:, own] = 0.0
+    leave = rates.sum(axis=1)                            # r_i
+    stay = np.exp(-leave * dt_s)                         # Π_ii = e^(-r_i dt)
+    share = rates / np.where(leave > 0.0, leave, 1.0)[:, None]  # r_ij / r_i (0 if r_i = 0)
+    row = (1.0 - stay)[:, None] * share                  # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
+    row[:, own] = stay
+    return row
+
+
 class RateTransition:
     """
     Π(dt) from switching rates [1/s]: a continuous-time Markov chain, first jump only.
@@ -133,16 +161,8 @@ class RateTransition:
     def matrix(self, dt_s: float, rates: Optional[np.ndarray] = None) -> np.ndarray:
         """Return Π(dt) for these rates (or ``rates``, e.g. scaled by the state)."""
         # Plain floats: a few modes, and a stream with jittered stamps asks at every step.
-        matrix = []
-        for i, row in enumerate((self.rates if rates is None else rates).tolist()):
-            row[i] = 0.0
-            leave = sum(row)                             # r_i
-            stay = math.exp(-leave * dt_s)               # Π_ii = e^(-r_i dt)
-            # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
-            row = [(1.0 - stay) * (r / leave) if leave > 0.0 else 0.0 for r in row]
-            row[i] = stay
-            matrix.append(row)
-        return np.array(matrix)
+        return np.array([first_jump_row(row, i, dt_s) for i, row in
+                         enumerate((self.rates if rates is None else rates).tolist())])
 
     def __call__(self, dt_s: float, state: IMMState) -> np.ndarray:
         """Return Π(dt_s)."""
@@ -164,7 +184,7 @@ def log_likelihood(result: UpdateResult) -> float:
         sign, log_det = np.linalg.slogdet(S)
         if sign <= 0.0:
             raise ValueError(f'innovation covariance is not positive definite: {S.tolist()}')
-    return -0.5 * (result.nis + log_det + S.shape[0] * _LOG_2PI)
+    return -0.5 * (result.nis + log_det + S.shape[0] * LOG_2PI)
 
 
 def _measurement(z) -> float:
@@ -181,13 +201,18 @@ def _measurement(z) -> float:
     return float(z[0])
 
 
-def _variance(R) -> float:
-    """Return a 1x1 measurement noise R as a float, checked as as_covariance does."""
-    if type(R) is np.ndarray and R.shape == (1, 1) and R.dtype == np.float64:
-        value = float(R[0, 0])
-        if 0.0 <= value < math.inf:
-            return value
-    return float(as_covariance('R', R, 1)[0, 0])
+def _noise_row(R) -> np.ndarray:
+    """
+    Return the row (1,) of a 1x1 measurement noise R, checked as as_covariance does.
+
+    The estimator's R, a checked (1, 1) float array, passes as it is (its row is a view):
+    R keeps its shape from the estimator to the stacked update, which broadcasts it
+    over the modes.
+    """
+    if type(R) is np.ndarray and R.shape == (1, 1) and R.dtype == np.float64 and \
+            0.0 <= R.item(0) < math.inf:
+        return R[0]
+    return as_covariance('R', R, 1)[0]
 
 
 class IMM:
@@ -195,23 +220,41 @@ class IMM:
     The IMM's models and arithmetic; every method is pure (states in, states out).
 
     ``modes``: one model per mode, each with ``predict(x, P, dt_s, u)`` and
-    ``update(x, P, z, R)`` returning ``(x, P, UpdateResult)``. ``transition``: a
-    callable ``(dt_s, state) -> Π`` (:class:`FixedTransition`,
-    :class:`RateTransition` or a model's own). ``entry``: optional
-    ``(j, x, P) -> (x, P)`` applied to each component that switches into mode j.
-    When every mode is a plain LinearModel measuring a scalar, the modes are
-    computed as one stack (:mod:`kf_train.filters.imm_stack`); otherwise mode by mode
-    through their own ``predict`` and ``update``.
+    ``update(x, P, z, R)`` returning ``(x, P, UpdateResult)``. When every mode is a
+    plain LinearModel measuring a scalar, the modes are computed as one stack
+    (:mod:`kf_train.filters.imm_stack`); otherwise mode by mode through their own
+    ``predict`` and ``update``.
+
+    The hooks, through which a model specialises the IMM (the rail model,
+    :mod:`kf_train.filters.rail_model`, gives all of them; every one is called as
+    given, nothing else of the IMM is replaced):
+
+    * ``transition``: ``(dt_s, state) -> Π`` (:class:`FixedTransition`,
+      :class:`RateTransition` or a model's own). Π is checked at every prediction
+      (once, if it is the same read-only matrix again) unless ``stochastic`` says
+      it is row-stochastic by construction.
+    * ``entry``: optional ``(j, x, P) -> (x, P)``, applied to each component that
+      switches into mode j, component by component.
+    * ``mixing``: optional ``(weights, means, covariances) -> (x0 (N, n), P0 (N, n, n))``:
+      every mode's starting mixture at once, for ω_ij = ``weights[i, j]``, with the
+      components as they enter each mode. It must give what ``entry`` and the
+      mixture give (a vectorised form of it); without it, that is what runs.
+    * ``matrices``: optional ``dt_s -> (F, Q, Fᵀ)``, the modes' stacked matrices
+      (N, n, n) for the stacked path, for models that build them checked themselves;
+      without it, the stack asks each mode and checks (:class:`LinearStack`).
     """
 
     def __init__(self, modes: Sequence, transition: Callable, mode_names=None,
-                 entry: Optional[Callable] = None):
-        """Keep the models; names default to mode0, mode1, …."""
+                 entry: Optional[Callable] = None, *, mixing: Optional[Callable] = None,
+                 matrices: Optional[Callable] = None, stochastic: bool = False):
+        """Keep the models and hooks; names default to mode0, mode1, …."""
         if len(modes) < 1:
             raise ValueError('an IMM needs at least one mode')
         self.modes = tuple(modes)
         self.transition = transition
         self.entry = entry
+        self.mixing = mixing
+        self.stochastic = bool(stochastic)
         names = tuple(mode_names) if mode_names is not None else tuple(
             f'mode{i}' for i in range(len(self.modes)))
         if len(names) != len(self.modes) or len(set(names)) != len(names):
@@ -219,6 +262,9 @@ class IMM:
                              f'{names!r}')
         self.mode_names = names
         self._stack = LinearStack.of(self.modes)
+        if matrices is None and self._stack is not None:
+            matrices = self._stack.matrices
+        self.matrices = matrices
         self._checked_matrix = None
 
     @property
@@ -242,7 +288,7 @@ class IMM:
     def _transition_matrix(self, dt_s: float, state: IMMState) -> np.ndarray:
         """Return the checked Π of this prediction (a read-only Π is checked once)."""
         matrix = self.transition(dt_s, state)
-        if matrix is self._checked_matrix:
+        if self.stochastic or matrix is self._checked_matrix:
             return matrix
         checked = check_transition_matrix(matrix, self.mode_count)
         if _frozen(matrix):  # it cannot change: the next call may skip the check
@@ -270,6 +316,8 @@ class IMM:
 
     def _mixed(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
         """Return every mode's starting mixture (x0_j, P0_j) for mixing weights ω_ij."""
+        if self.mixing is not None:
+            return self.mixing(weights, means, covs)
         return imm_stack.mix(weights, *self._entered(means, covs, weights))
 
     def _entered(self, means: np.ndarray, covs: np.ndarray, weights: np.ndarray):
@@ -301,16 +349,12 @@ class IMM:
     def _predict_modes(self, means: np.ndarray, covs: np.ndarray, dt_s: float, u=None):
         """Return each mode's own prediction of its (means[j], covs[j]) over dt_s."""
         if self._stack is not None and u is None:
-            return imm_stack.predict(means, covs, *self._matrices(dt_s))
+            return imm_stack.predict(means, covs, *self.matrices(dt_s))
         predicted_x = np.empty_like(means)
         predicted_P = np.empty_like(covs)
         for j, mode in enumerate(self.modes):
             predicted_x[j], predicted_P[j] = mode.predict(means[j], covs[j], dt_s, u)
         return predicted_x, predicted_P
-
-    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return the stacked, checked F(dt_s), Q(dt_s) and F(dt_s)ᵀ of the modes."""
-        return self._stack.matrices(dt_s)
 
     def predict_ahead(self, state: IMMState, dt_s: float, u=None
                       ) -> Tuple[np.ndarray, np.ndarray]:
@@ -344,7 +388,7 @@ class IMM:
         """Do :meth:`update` on the stack: every mode a LinearModel measuring a scalar."""
         stack = self._stack
         z = _measurement(z)
-        R = stack.R if R is None else stack.noise(_variance(R))
+        R = stack.R if R is None else _noise_row(R)
         result = imm_stack.update(state.means, state.covariances, z, stack.H, R,
                                   stack.identity, stack.selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
@@ -376,6 +420,9 @@ class IMM:
 class IMMFilter:
     """
     An IMM holding its state, with the interface of :class:`kf_train.filters.family.Filter`.
+
+    The one holder of a running IMM state: the rail preset's offline series
+    (:class:`kf_train.batch.RailSeriesFilter`) runs one from its first measurement on.
 
     ``predict``/``update`` replace the state only once the whole step succeeded;
     ``predict_ahead`` never changes it; ``snapshot()`` is the immutable state itself.

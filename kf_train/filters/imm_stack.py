@@ -17,11 +17,11 @@ but the results' finiteness (an overflow raises ValueError, as kalman's steps do
 import math
 from typing import NamedTuple, Optional, Tuple
 
+from kf_train.filters.kalman import LOG_2PI
 from kf_train.filters.models import LinearDynamicsModel, LinearModel
 from kf_train.filters.validation import as_covariance, as_duration, as_matrix
 import numpy as np
 
-_LOG_2PI = math.log(2.0 * math.pi)
 # How many dt values a LinearStack keeps stacked matrices for (a stream repeats a few).
 _KEPT = 64
 _ONES = {}
@@ -147,7 +147,9 @@ def update(means: np.ndarray, covariances: np.ndarray, z: float, H: np.ndarray,
            R: np.ndarray, identity: np.ndarray, selected: Optional[int] = None
            ) -> StackUpdate:
     """
-    Return each mode corrected by the scalar z: H (N, 1, n), R (N,), Joseph form.
+    Return each mode corrected by the scalar z: H (N, 1, n), R (N,) or (1,), Joseph form.
+
+    R is each mode's variance, or one for all modes (the row of a (1, 1) R, broadcast).
 
     S is 1x1, so K = P Hᵀ / s and NIS = y² / s in closed form, as kalman.update does.
     ``selected``: the index k when every H is the unit row e_k; then H P, H x and
@@ -185,7 +187,7 @@ def update(means: np.ndarray, covariances: np.ndarray, z: float, H: np.ndarray,
         nis = y_j * y_j / s_j                                        # NIS = y² / s
         if not math.isfinite(nis) or nis < 0.0:
             raise ValueError(f'update produced an invalid NIS {nis}; S = {s_list}')
-        logs.append(-0.5 * (nis + math.log(s_j) + _LOG_2PI))         # log N(y; 0, s)
+        logs.append(-0.5 * (nis + math.log(s_j) + LOG_2PI))         # log N(y; 0, s)
     return StackUpdate(x, P, y, s, K, logs)
 
 
@@ -254,16 +256,6 @@ class LinearStack:
         for array in (self.H, self.R, self.identity):
             array.flags.writeable = False
         self._kept = {}
-        self._noise = (None, None)
-
-    def noise(self, variance: float) -> np.ndarray:
-        """Return R = ``variance`` for every mode, (N,), kept for the last value asked."""
-        kept = self._noise
-        if kept[0] != variance:
-            vector = np.full(len(self.modes), variance)
-            vector.flags.writeable = False
-            kept = self._noise = (variance, vector)
-        return kept[1]
 
     @classmethod
     def of(cls, modes) -> Optional['LinearStack']:

@@ -18,6 +18,7 @@ import math
 from typing import Tuple, Union
 
 from kf_train.filters import kalman
+from kf_train.filters.contract import PredictThenUpdate
 from kf_train.filters.validation import as_covariance, as_duration, as_matrix
 import numpy as np
 
@@ -193,13 +194,14 @@ class ConstantVelocityModel:
 POSITION_H = np.array([[1.0, 0.0]])
 
 
-class LinearDynamicsModel:
+class LinearDynamicsModel(PredictThenUpdate):
     """
     Linear dynamics F(dt), Q(dt), B(dt) with named components; subclasses add the update.
 
     The base of :class:`LinearModel` (linear measurement) and of
     :class:`kf_train.filters.ekf.ExtendedModel` (nonlinear measurement): both predict the same
-    way and differ only in how a measurement corrects the state.
+    way and differ only in how a measurement corrects the state. With the update, a
+    :class:`~kf_train.filters.contract.StepModel` (predict_update: predict then update).
     """
 
     def __init__(self, F, Q, R, *, B, state_names, measurement_names, control_names):

@@ -1,5 +1,11 @@
 """
-The moving regimes' dynamics for any dt: transition F(dt) and process noise Q(dt).
+The rail regimes' dynamics for any dt: transition F(dt) and process noise Q(dt), once.
+
+The regimes' state is [p, v, a, ℓ, A, B] (:mod:`kf_train.filters.rail_model`): a moving
+regime's F and Q are the relaxation's below on [p, v, a, ℓ], with A and B held under a
+random walk (:func:`moving_transition`, :func:`moving_noise`); the stand regime holds
+p (plus its own random walk) and A, B, and sets v = a = ℓ = 0 (:data:`STAND_TRANSITION`,
+:func:`stand_noise`).
 
 A moving train follows ṗ = v, v̇ = a, ȧ = (ℓ - a)/τ, ℓ̇ = 0, with white noise q_a on ȧ
 and q_ℓ on ℓ̇ (:mod:`kf_train.filters.rail_model`). F(dt) has a closed form in
@@ -158,3 +164,32 @@ class RelaxationNoise:
         Q = self._table.dot(x ** self._powers)
         Q *= self._scale
         return Q.reshape(4, 4)
+
+
+DIM_X = 6
+"""The regimes' states: p, v, a, ℓ, A, B."""
+STAND_TRANSITION = np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0])
+"""F of the stand regime, for every dt: p, A and B held, v = a = ℓ = 0."""
+STAND_TRANSITION.flags.writeable = False
+
+
+def stand_noise(dt_s: float, position_noise: float, capability_noise: float) -> np.ndarray:
+    """Return the 6x6 Q(dt) of the stand regime: p's random walk, and A, B's drift."""
+    return np.diag([position_noise * dt_s, 0.0, 0.0, 0.0,
+                    capability_noise * dt_s, capability_noise * dt_s])
+
+
+def moving_transition(dt_s: float, tau_s: float) -> np.ndarray:
+    """Return the 6x6 F(dt) of a moving regime: the relaxation, A and B held."""
+    F = np.eye(DIM_X)
+    F[:4, :4] = relaxation_rows(dt_s, tau_s, *_phi(dt_s / tau_s), 1.0, 0.0)
+    return F
+
+
+def moving_noise(dt_s: float, relaxation: RelaxationNoise, capability_noise: float
+                 ) -> np.ndarray:
+    """Return the 6x6 Q(dt) of a moving regime: the relaxation's, and A, B's drift."""
+    Q = np.zeros((DIM_X, DIM_X))
+    Q[:4, :4] = relaxation(dt_s)
+    Q[4, 4] = Q[5, 5] = capability_noise * dt_s
+    return Q

@@ -34,6 +34,8 @@ class EntryGather:
                  noises: Sequence[float], dim_x: int, ell: int):
         """Build the tables for N = len(sources) regimes of ``dim_x`` states."""
         count, n = len(sources), dim_x
+        self.sources, self.factors = tuple(sources), tuple(float(c) for c in factors)
+        self.noises, self.ell = tuple(float(w) for w in noises), ell
         # index of x_ji[a] in the flattened (N, n) means, and its factor
         index_x = np.empty((count, count, n), dtype=np.intp)
         factor_x = np.ones((count, count, n))
@@ -59,6 +61,27 @@ class EntryGather:
         self.index_x, self.factor_x = index_x, factor_x
         for array in (self.index_x, self.factor_x, self.index_P, self.factor_P, self.noise_P):
             array.flags.writeable = False
+
+    def enter(self, j: int, x: np.ndarray, P: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Return one component (x, P) as it enters regime j: x' = T_j x + w, the same rule.
+
+        ℓ' = c_j x[k_j] + w (ℓ' = w without a source): ℓ's row and column become
+        c_j times k_j's, its variance c_j² P[k_j, k_j] + W_j.
+        """
+        x, P = x.copy(), P.copy()
+        ell, source, factor = self.ell, self.sources[j], self.factors[j]
+        if source is None:
+            x[ell] = 0.0
+            P[ell, :] = 0.0
+            P[:, ell] = 0.0
+            P[ell, ell] = self.noises[j]
+        else:
+            x[ell] = factor * x[source]
+            P[ell, :] = factor * P[source, :]
+            P[:, ell] = factor * P[:, source]
+            P[ell, ell] = factor * factor * P[source, source] + self.noises[j]
+        return x, P
 
     def components(self, means: np.ndarray, covariances: np.ndarray
                    ) -> Tuple[np.ndarray, np.ndarray]:

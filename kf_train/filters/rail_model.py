@@ -45,10 +45,11 @@ import math
 from typing import Dict, Tuple
 
 from kf_train.filters import imm_stack
-from kf_train.filters.imm import IMM, IMMFilter, IMMState, RateTransition
+from kf_train.filters.imm import first_jump_row, IMM, IMMFilter, IMMState, RateTransition
 from kf_train.filters.models import LinearModel
 from kf_train.filters.rail_dynamics import (
-    _phi, relaxation_rows, relaxation_transition, RelaxationNoise)
+    _phi, moving_noise, moving_transition, relaxation_transition, RelaxationNoise, stand_noise,
+    STAND_TRANSITION)
 from kf_train.filters.rail_mixing import EntryGather
 from kf_train.filters.rail_stop import StopFinder
 import numpy as np
@@ -165,38 +166,19 @@ class _Cached:
 
 def _stand_model(params: RailModelParameters) -> LinearModel:
     """Return the stand regime: p held (plus stand_noise), v = a = ℓ = 0 exactly, A, B kept."""
-    F = np.diag([1.0, 0.0, 0.0, 0.0, 1.0, 1.0])
-    F.flags.writeable = False
-    q = params.capability_noise
-    return LinearModel(lambda dt: F,
-                       _Cached(lambda dt: np.diag([params.stand_noise * dt, 0.0, 0.0, 0.0,
-                                                   q * dt, q * dt])),
+    return LinearModel(lambda dt: STAND_TRANSITION,
+                       _Cached(lambda dt: stand_noise(dt, params.stand_noise,
+                                                      params.capability_noise)),
                        _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
-
-
-def _moving_transition(dt_s: float, tau_s: float) -> np.ndarray:
-    """Return the 6x6 F(dt) of a moving regime: the relaxation, A and B held."""
-    F = np.eye(DIM_X)
-    F[:4, :4] = relaxation_rows(dt_s, tau_s, *_phi(dt_s / tau_s), 1.0, 0.0)
-    return F
-
-
-def _moving_noise(dt_s: float, relaxation: RelaxationNoise, capability_noise: float
-                  ) -> np.ndarray:
-    """Return the 6x6 Q(dt) of a moving regime: the relaxation's, and A, B's drift."""
-    Q = np.zeros((DIM_X, DIM_X))
-    Q[:4, :4] = relaxation(dt_s)
-    Q[4, 4] = Q[5, 5] = capability_noise * dt_s
-    return Q
 
 
 def _moving_model(params: RailModelParameters) -> LinearModel:
     """Return a moving regime's Kalman model (all three share the dynamics)."""
     tau = params.response_time_s
     relaxation = RelaxationNoise(tau, params.acceleration_noise, params.command_noise)
-    return LinearModel(_Cached(lambda dt: _moving_transition(dt, tau)),
-                       _Cached(lambda dt: _moving_noise(dt, relaxation,
-                                                        params.capability_noise)),
+    return LinearModel(_Cached(lambda dt: moving_transition(dt, tau)),
+                       _Cached(lambda dt: moving_noise(dt, relaxation,
+                                                       params.capability_noise)),
                        _H, [[params.noise_std_m ** 2]], state_names=STATE_NAMES)
 
 
@@ -205,33 +187,55 @@ def _normal_cdf(x: float) -> float:
     return 0.5 * math.erfc(-x / math.sqrt(2.0))
 
 
+def stop_probability(v, std, stop_speed_mps: float):
+    """
+    Return P(velocity <= stop_speed_mps) for a velocity ~ N(v, std²): THE stop rule.
+
+    A braking train switches to stand at stop_rate_hz times this. ``v`` and ``std``
+    are floats, or arrays (one per setting, the tuner's), computed element by element
+    with the same float arithmetic.
+    """
+    if type(v) is not float:
+        return np.array([stop_probability(a, b, stop_speed_mps)
+                         for a, b in zip(v.tolist(), std.tolist())])
+    return (1.0 if v <= stop_speed_mps else 0.0) if std == 0.0 else \
+        _normal_cdf((stop_speed_mps - v) / std)
+
+
 class RailModel(IMM):
-    """The four-regime rail IMM (pure: states in, states out); see the module docstring."""
+    """
+    The four-regime rail IMM (pure: states in, states out); see the module docstring.
+
+    It specialises the :class:`~kf_train.filters.imm.IMM` through its public hooks
+    only, each of them a method here and the one code that runs: :meth:`transition`
+    (Π(dt) with the state's brake -> stand rate), :meth:`mix_entering` (the mixing,
+    components entering a regime by :meth:`entry`'s rule) and :meth:`matrices` (the
+    regimes' stacked F, Q); and it has its own :meth:`predict_ahead` (no reversal).
+    """
 
     def __init__(self, parameters: RailModelParameters = RailModelParameters()):
         """Build the regimes from ``parameters``."""
         self.parameters = parameters
         moving = _moving_model(parameters)
         self._rates = RateTransition(parameters.rates())
-        super().__init__((_stand_model(parameters), moving, moving, moving), self._transition,
-                         MODE_NAMES, self.entry)
-        self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
         self._entry = _entry_transformation(parameters)
         self._per_dt: Dict[float, tuple] = {}
+        # Π is row-stochastic by construction (first_jump_row), so not re-checked.
+        super().__init__((_stand_model(parameters), moving, moving, moving), self.transition,
+                         MODE_NAMES, self.entry, mixing=self.mix_entering,
+                         matrices=self.matrices, stochastic=True)
+        self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
 
     def _slow(self, state: IMMState) -> float:
         """Return P(v <= stop_speed_mps) under the brake regime's estimate."""
-        params = self.parameters
-        v = float(state.means[BRAKE, 1])
-        std = math.sqrt(max(float(state.covariances[BRAKE, 1, 1]), 0.0))
-        return (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
-            _normal_cdf((params.stop_speed_mps - v) / std)
+        return stop_probability(float(state.means[BRAKE, 1]),
+                                math.sqrt(max(float(state.covariances[BRAKE, 1, 1]), 0.0)),
+                                self.parameters.stop_speed_mps)
 
-    def _transition(self, dt_s: float, state: IMMState) -> np.ndarray:
-        """Return Π(dt): the fixed rates plus brake -> stand, scaled by P(v <= stop speed)."""
-        rates = self._rates.rates.copy()
-        rates[BRAKE, STAND] = self.parameters.stop_rate_hz * self._slow(state)
-        return self._rates.matrix(dt_s, rates)
+    @property
+    def entry_rule(self) -> EntryGather:
+        """Return the entry rule's tables (sources, factors, noises of ℓ per regime)."""
+        return self._entry
 
     def _for_dt(self, dt_s: float) -> tuple:
         """Return (F, Q, Fᵀ, Π without brake -> stand) for dt_s, computed once per dt_s."""
@@ -252,28 +256,25 @@ class RailModel(IMM):
             self._per_dt[dt_s] = kept
         return kept
 
-    def _matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Return the regimes' stacked F(dt_s), Q(dt_s) and F(dt_s)ᵀ."""
+    def matrices(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return the regimes' stacked F(dt_s), Q(dt_s) and F(dt_s)ᵀ (the IMM's hook)."""
         return self._for_dt(dt_s)[:3]
 
-    def _transition_matrix(self, dt_s: float, state: IMMState) -> np.ndarray:
+    def transition(self, dt_s: float, state: IMMState) -> np.ndarray:
         """
-        Return :meth:`_transition`'s Π(dt), stochastic by construction (not re-checked).
+        Return Π(dt): the fixed rates plus brake -> stand, scaled by P(v <= stop speed).
 
-        Only the brake row depends on the state; the others are kept per dt.
+        Only the brake row depends on the state: the others are kept per dt, and the
+        brake row is :func:`~kf_train.filters.imm.first_jump_row` of the brake rates
+        with stop_rate_hz · P(v <= stop_speed_mps) to stand (the IMM's hook).
         """
         rates = self._rates.rates[BRAKE].tolist()
         rates[STAND] = self.parameters.stop_rate_hz * self._slow(state)
-        leave = sum(rates)                                     # r_i
-        stay = math.exp(-leave * dt_s)                         # Π_ii = e^(-r_i dt)
-        # Π_ij = (1 - e^(-r_i dt)) r_ij / r_i
-        row = [(1.0 - stay) * (r / leave) if leave > 0.0 else 0.0 for r in rates]
-        row[BRAKE] = stay
         matrix = self._for_dt(dt_s)[3].copy()
-        matrix[BRAKE] = row
+        matrix[BRAKE] = first_jump_row(rates, BRAKE, dt_s)
         return matrix
 
-    def _mixed(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
+    def mix_entering(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
         """
         Return every regime's starting mixture, components entering it by :meth:`entry`.
 
@@ -282,7 +283,7 @@ class RailModel(IMM):
         for i ≠ j, itself for i = j. T_j is the identity but for ℓ's row (A's, -B's or
         none), so every entry of x_ji and P_ji is one entry of x_i or P_i times 1, ±1
         or 0: all N² components are gathered at once (:mod:`~kf_train.filters.rail_mixing`,
-        exact, as entry's copies are).
+        exact, as entry's copies are). The IMM's mixing hook.
         """
         return self._entry.mix(weights.T, means, covs)
 
@@ -293,22 +294,10 @@ class RailModel(IMM):
         accelerate: ℓ = A + w, brake: ℓ = -B + w, w ~ N(0, plateau_std²) independent;
         as x' = T x + w this is exact: ℓ's row and column become A's (or -B's) and its
         variance Var(A) + plateau_std². cruise: ℓ ~ N(0, cruise_std²), independent of
-        the rest; stand: ℓ = 0.
+        the rest; stand: ℓ = 0. The rule is :func:`_entry_transformation`'s tables,
+        which :meth:`mix_entering` applies to all components at once.
         """
-        x, P = x.copy(), P.copy()
-        params = self.parameters
-        if j in (ACCELERATE, BRAKE):
-            source, sign = (4, 1.0) if j == ACCELERATE else (5, -1.0)
-            x[3] = sign * x[source]
-            P[3, :] = sign * P[source, :]
-            P[:, 3] = sign * P[:, source]
-            P[3, 3] = P[source, source] + params.plateau_std_mps2 ** 2
-        else:
-            x[3] = 0.0
-            P[3, :] = 0.0
-            P[:, 3] = 0.0
-            P[3, 3] = params.cruise_std_mps2 ** 2 if j == CRUISE else 0.0
-        return x, P
+        return self._entry.enter(j, x, P)
 
     def first_estimate(self, position_m: float, variance_m2: float = None) -> IMMState:
         """Return the state after a first position measurement: v, a, ℓ wide, regimes even."""
@@ -329,7 +318,7 @@ class RailModel(IMM):
         dt_s = imm_stack.duration(dt_s)
         if u is not None:
             raise ValueError('u given to a model without control input')
-        means, covs = imm_stack.predict(state.means, state.covariances, *self._matrices(dt_s),
+        means, covs = imm_stack.predict(state.means, state.covariances, *self.matrices(dt_s),
                                         final=False)
         starts = state.means[:, :4].tolist()
         stops = self._stops
@@ -350,7 +339,7 @@ class RailModel(IMM):
 
 def _entry_transformation(params: RailModelParameters) -> EntryGather:
     """
-    Return the gather tables of :meth:`RailModel.entry` for the four regimes.
+    Return the entry rule of the four regimes as gather tables (:meth:`RailModel.entry`).
 
     Entering regime j is x' = T_j x + w, w ~ N(0, W_j): T_j is the identity with ℓ's
     row replaced by A's (accelerate), -B's (brake) or zeros (cruise, stand); W_j is

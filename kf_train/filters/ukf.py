@@ -43,6 +43,7 @@ LinAlgError instead: rlabbe/filterpy issues #62, #218).
 import math
 from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 
+from kf_train.filters.contract import PredictThenUpdate
 from kf_train.filters.ekf import wrap_angle
 from kf_train.filters.kalman import UpdateResult
 from kf_train.filters.validation import as_covariance, as_finite_array, as_vector
@@ -397,9 +398,9 @@ def batch_measurement(model) -> BatchMeasurement:
 # The preset adapter: the same interface as LinearModel and ExtendedModel
 # ---------------------------------------------------------------------------
 
-class UnscentedModel:
+class UnscentedModel(PredictThenUpdate):
     """
-    A preset's model run as a UKF: ``predict(x, P, dt_s, u)``, ``update(x, P, z, R)``.
+    A preset's model run as a UKF: a :class:`~kf_train.filters.contract.StepModel`.
 
     Built from a LinearModel or ExtendedModel (:meth:`from_model`); the dynamics are
     the model's F(dt), Q(dt), B(dt) (linear, so the transform is exact there), the

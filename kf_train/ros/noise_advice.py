@@ -5,8 +5,9 @@ Pure (no rclpy). :class:`NoiseAdvisor` is what the node's session
 (:mod:`kf_train.ros.session`) feeds with every measurement it fuses, and asks at every
 diagnostics period. It keeps the latest ``noise_suggestion_window`` fused measurements
 in a :class:`kf_train.batch.RunningNoiseEstimate` (maximum likelihood of q on that
-window, with the node's own linear filter and the R the node uses: the
-``measurement_variance`` parameter, else the newest message's variance), and
+window, with the node's own linear filter and the estimator's R for the newest
+message's variances, :meth:`~kf_train.estimator.StreamEstimator.measurement_noise`:
+the override is applied by the estimator only), and
 recomputes the suggestion only when a window's worth of new measurements came in: a
 suggestion costs two runs of a filter batched over a few hundred q values
 (:mod:`kf_train.batch.noise_grid`; 7-20 ms for 300 rows, where 25-40 runs of one q
@@ -125,8 +126,8 @@ class NoiseAdvisor:
         """
         Return the window's suggested q, recomputed when due; None before it means much.
 
-        ``node_variances`` maps the newest message's variances to the R the node uses
-        (its ``measurement_variance`` overrides).
+        ``node_variances`` maps the newest message's variances to the variances of the
+        estimator's R (the session's reads StreamEstimator.measurement_noise).
         """
         estimate = self._estimate
         if estimate is None or len(estimate) < estimate.min_samples:

@@ -167,12 +167,8 @@ class EstimatorSession:
             self.noise.add(stamp_ns, (measurement.position_m,), (measurement.variance_m2,))
 
     def _node_variances(self, message_variances) -> tuple:
-        """Return the R the node uses for a message's variances (the parameters override)."""
-        estimator = self.estimator
-        variances = (estimator.measurement_variance(message_variances[0]),)
-        if len(message_variances) > 1:
-            variances += (estimator.velocity_variance(message_variances[1]),)
-        return variances
+        """Return the variances of the estimator's R for a message's (the one override rule)."""
+        return tuple(self.estimator.measurement_noise(*message_variances).diagonal().tolist())
 
     def on_control(self, control, now_ns: int) -> Outputs:
         """Take one control (``stamp_ns``, ``value``); the corrected estimate if it changed."""

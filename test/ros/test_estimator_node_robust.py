@@ -407,9 +407,12 @@ def test_sim_time_before_the_first_clock_skips_the_future_check(ros_context, exe
 
 
 def test_estimate_step_is_backwards_compatible():
-    """Build an EstimateStep from its first seven fields; the new ones default."""
-    step = EstimateStep(1, np.zeros(2), np.eye(2), None, 2, np.zeros(2), np.eye(2))
+    """Build an EstimateStep from its first seven fields (keywords); the new ones default."""
+    step = EstimateStep(stamp_ns=1, x=np.zeros(2), P=np.eye(2), update=None,
+                        prediction_stamp_ns=2, predicted_x=np.zeros(2), predicted_P=np.eye(2))
     assert (step.measurement_stamp_ns, step.replayed, step.reset) == (0, 0, None)
+    with pytest.raises(TypeError):
+        EstimateStep(1, np.zeros(2), np.eye(2), None, 2, np.zeros(2), np.eye(2))
     assert issubclass(Rejected, ValueError)
     assert (EstimatorSettings().gate_probability, EstimatorSettings().history_s) == (
         DEFAULT_GATE_PROBABILITY, 0.0)

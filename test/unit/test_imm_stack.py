@@ -139,8 +139,8 @@ def test_the_generic_paths_equal_the_rail_models_own(runs):
         def update(self, x, P, z, R=None):
             return self.mode.update(x, P, z, R)
 
-    stacked_generic = IMM(rail.modes, rail._transition, rail.mode_names, rail.entry)
-    mode_by_mode = IMM([Wrapped(mode) for mode in rail.modes], rail._transition,
+    stacked_generic = IMM(rail.modes, rail.transition, rail.mode_names, rail.entry)
+    mode_by_mode = IMM([Wrapped(mode) for mode in rail.modes], rail.transition,
                        rail.mode_names, rail.entry)
     assert stacked_generic._stack is not None and mode_by_mode._stack is None
     _, _, _, z = runs[0]

@@ -191,3 +191,17 @@ def test_a_window_the_likelihood_refuses_gives_no_suggestion_until_the_next_refr
         stamp_ns = clock.now_ns + k * NS // 10
         session.on_measurement(Measurement(stamp_ns, 'odom', 0.0, 1.0), stamp_ns)
     assert advisor.suggestion(session._node_variances) is not None
+
+
+def test_the_advisor_reads_the_estimators_r():
+    """The window's R is the estimator's (measurement_noise), the one override rule."""
+    session, _ = session_fed(2.0, 10, 'measurement_variance:=4.0')
+    estimator = session.estimator
+    assert session._node_variances((1.0,)) == (4.0,) == tuple(
+        estimator.measurement_noise(1.0).diagonal().tolist())
+    session.apply_changes({'measurement_variance': 0.0})       # the message's again
+    assert session._node_variances((2.5,)) == (2.5,)
+    velocity = EstimatorSession(load_estimator_config(
+        [], ['preset:=cv-position-velocity', 'measurement_velocity_variance:=9.0']), float)
+    assert velocity._node_variances((1.0, 0.5)) == (1.0, 9.0)
+    assert velocity.estimator.measurement_noise(1.0, 0.5).tolist() == [[1.0, 0.0], [0.0, 9.0]]

@@ -158,8 +158,8 @@ def _state(v_mps, v_std, mode=BRAKE):
 
 def test_only_a_slow_braking_train_can_stop():
     model = RailModel()
-    fast = model._transition(0.1, _state(15.0, 0.2))
-    slow = model._transition(0.1, _state(0.05, 0.1))
+    fast = model.transition(0.1, _state(15.0, 0.2))
+    slow = model.transition(0.1, _state(0.05, 0.1))
     # At 15 ± 0.2 m/s, P(v <= 0.3 m/s) is Φ(-73.5): 0 in floats.
     assert fast[BRAKE, STAND] == 0.0
     # At 0.05 ± 0.1 m/s, Φ(2.5) = 0.994 of the stop rate (1/s) over 0.1 s.
