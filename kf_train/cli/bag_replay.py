@@ -40,10 +40,9 @@ import time
 from typing import Callable, Iterator, List, NamedTuple, Optional
 
 from kf_train.cli.progress import counted
-from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.replay_engines import collector_frozen
 from kf_train.estimator import StreamEstimator
-from kf_train.io import bagio, bagio_output, csvio
+from kf_train.io import bagio, bagio_output, check_output_path, csvio, write_atomic
 from kf_train.ros import diagnostics as ros_diagnostics
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
 import numpy as np
@@ -183,7 +182,7 @@ def _csv_chunks(run: BagRun, counts: dict) -> Iterator:
 
 def write_csv(run: BagRun, path: str, counts: dict) -> None:
     """Replay into a CSV at ``path`` (atomically)."""
-    check_file_target(path)
+    check_output_path(path)
     try:
         write_atomic(path, _csv_chunks(run, counts))
     except OSError as error:

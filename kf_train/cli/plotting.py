@@ -27,6 +27,7 @@ from typing import Dict, List, Optional, Sequence
 
 from kf_train.batch import run_series
 from kf_train.filters import as_duration, as_finite_array, as_vector, RangeBearing
+from kf_train.io import header_names, read_table
 from kf_train.presets import available_presets, load_preset, Preset, RAIL_PRESET_NAME
 from kf_train.sim import baselines, scenario_for_preset
 import numpy as np
@@ -287,7 +288,6 @@ def scenario_figures(output_dir: str, name: str, seed: int = 0) -> List[str]:
 def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[str] = None,
                         t0_s: float = 0.0) -> List[str]:
     """Draw a ``kf-train replay`` output (and its input's measurements); return paths."""
-    from kf_train.cli import replay
     header = _csv_header(replay_csv)
     states = [c for c in header if c != 't' and not c.startswith(
         ('var_', 'predicted_', 'smoothed_')) and 'var_' + c in header]
@@ -298,7 +298,7 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
     smoothed = all('smoothed_' + s in header for s in states)
     if smoothed:
         wanted += ['smoothed_' + s for s in states] + ['var_smoothed_' + s for s in states]
-    table = replay.read_table(replay_csv, [(c,) for c in wanted])
+    table = read_table(replay_csv, [(c,) for c in wanted])
     col = table.columns
     N, n = table.rows, len(states)
     x = np.column_stack([col[s] for s in states]) if N else np.empty((0, n))
@@ -321,7 +321,7 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
                  and 'x' in states and 'y' in states)
         needed = [('t',)] + [('z_' + s,) for s in direct]
         needed += [('z_bearing',), ('z_range',)] if polar else []
-        inputs = replay.read_table(input_csv, needed)
+        inputs = read_table(input_csv, needed)
         if inputs.rows != N or not np.array_equal(inputs.columns['t'], col['t']):
             raise ValueError(f'{input_csv} does not have the rows of {replay_csv}')
         for s in direct:
@@ -346,13 +346,12 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
 
 def _csv_header(path: str) -> List[str]:
     """Return the column names of a CSV file."""
-    from kf_train.cli import replay
     try:
         with open(path, encoding='utf-8-sig', newline='') as stream:
             line = stream.readline()
     except OSError as error:
         raise ValueError(f'{path}: cannot read: {error.strerror}') from None
-    return replay._header(path, line.rstrip('\r\n'))
+    return header_names(path, line.rstrip('\r\n'))
 
 
 # ---------------------------------------------------------------------------

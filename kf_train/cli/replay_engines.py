@@ -17,6 +17,7 @@ import gc
 import os
 
 from kf_train.batch import DEFAULT_BLOCK_ROWS
+from kf_train.io import check_output_path
 
 ENGINES = ('stream', 'memory', 'dask')
 CODECS = ('auto', 'polars', 'builtin')
@@ -59,29 +60,9 @@ def check_engine_options(parser: argparse.ArgumentParser, args) -> None:
                      '(--engine stream)')
 
 
-def check_output_path(path: str) -> None:
-    """
-    Raise a one-line ValueError if OUTPUT cannot be written where it is asked for.
-
-    Every output (CSV, a Parquet file, a dataset directory) is first written beside its
-    target, so the target's parent directory must exist and be writable.
-    """
-    if path == '-':
-        return
-    target = os.path.abspath(path.rstrip(os.sep) or os.sep)
-    directory = os.path.dirname(target)
-    if not os.path.isdir(directory):
-        raise ValueError(f'cannot write {path}: directory {directory} does not exist')
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise ValueError(f'cannot write {path}: directory {directory} is not writable')
-    dataset = os.path.isdir(path) or path.endswith(os.sep)
-    if os.path.isdir(target) and not dataset:
-        raise ValueError(f'cannot write {path}: it is a directory')
-
-
 def run_engine(args, preset, filt):
     """Run the replay the options ask for; return its ReplaySummary (raise InputError)."""
-    check_output_path(args.output)
+    check_output_path(args.output, dataset=True)
     common = {'horizon_s': args.horizon, 'smooth': args.smooth, 't0_s': args.t0, 'filt': filt}
     if args.engine == 'memory':
         from kf_train.cli.replay import replay

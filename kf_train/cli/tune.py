@@ -51,9 +51,9 @@ from kf_train.batch import (
     NoiseSetting, prediction_errors, PredictionReport, STATE_UNITS, TuningProblem,
     VARIANCE_PARAMETERS)
 from kf_train.cli.noise_fit import estimate_noise, TuningResult
-from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.tune_inputs import read_bag, reader_for, TopicOptions, TuneInput
 from kf_train.cli.tune_rail import add_rail_arguments, check_rail_args, rail_preset_of, tune_rail
+from kf_train.io import check_output_path, write_atomic
 from kf_train.presets import (
     available_presets, load_preset, load_preset_file, Preset, preset_from_mapping)
 import numpy as np
@@ -355,7 +355,7 @@ def _tune_linear(args) -> str:
     """Tune a linear preset on ``args.input``, write the files; return the report."""
     for target in (args.output, args.preset_output):
         if target not in (None, '-'):
-            check_file_target(target)       # before the work, not after
+            check_output_path(target)       # before the work, not after
     spec, preset, problem, parameterisation, before, notes = _setup(args)
     horizon_s = args.horizon or preset.horizon_s or DEFAULT_HORIZON_S
     report = run_tuning(problem, parameterisation, horizon_s, args.confidence, before)

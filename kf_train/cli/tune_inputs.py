@@ -38,8 +38,8 @@ import os
 from typing import Callable, List, NamedTuple, Optional
 
 from kf_train.batch import group_rows, Segment
-from kf_train.cli.replay import (
-    check_bank_times, check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns)
+from kf_train.cli.replay import check_bank_times, check_times, is_bag
+from kf_train.io import ID_COLUMN, InputError, read_table, required_columns, resolve_columns
 from kf_train.presets import Preset
 import numpy as np
 
@@ -155,9 +155,8 @@ def read_csv(path: str, preset: Preset, topics: TopicOptions = TopicOptions()) -
 
 def _parquet_names(path: str, header: List[str], preset: Preset) -> List[str]:
     """Return the columns to read: t, measurements, controls, truth (the replay's names)."""
-    from kf_train.cli.replay import _resolve   # the replay's column resolution
     try:
-        wanted = _resolve(path, header, required_columns(preset))
+        wanted = resolve_columns(path, header, required_columns(preset))
     except InputError as error:                 # a schema has no line 1
         raise InputError(str(error).replace(f'{path} line 1:', f'{path}:', 1)) from None
     return wanted + [TRUTH_PREFIX + s for s in preset.state_names

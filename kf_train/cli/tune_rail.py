@@ -26,8 +26,8 @@ from typing import List, Optional
 
 from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
 from kf_train.cli.rail_fit import fit_rail_noise, RailFit
-from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.cli.tune_inputs import reader_for, TopicOptions
+from kf_train.io import check_output_path, write_atomic
 from kf_train.presets import rail_preset_from_mapping, RailPreset
 import numpy as np
 
@@ -203,7 +203,7 @@ def tune_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> s
     preset_output = args.preset_output or default_preset_output(args.output)
     for target in (args.output, preset_output):
         if target != '-':
-            check_file_target(target)       # before minutes of work, not after
+            check_output_path(target)       # before minutes of work, not after
     data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
     segments = data.segments
     rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
