@@ -182,7 +182,7 @@ def row_replay(quick: bool) -> List[Row]:
     """
     from kf_train.batch import run_bank, run_series
     from kf_train.batch.stream import filter_table
-    from kf_train.cli import replay
+    from kf_train.replay import memory as replay
     from kf_train.io import csvio, read_table
     from kf_train.presets import available_presets, load_preset
     import numpy as np

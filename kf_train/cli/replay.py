@@ -1,13 +1,13 @@
 """
 ``kf-train replay``: a preset's filter over a CSV or Parquet table (or a bag), offline.
 
-A rosbag2 INPUT goes to :mod:`kf_train.cli.bag_replay` (the estimator node's session).
+A rosbag2 INPUT goes to :mod:`kf_train.replay.bag` (the estimator node's session).
 
-The command streams (:mod:`kf_train.cli.replay_stream`: any size in bounded memory,
-CSV or Parquet) unless ``--engine memory`` asks for :func:`replay` below, which holds
-the whole table; ``--engine dask`` runs a fleet on Dask
-(:mod:`kf_train.cli.fleet_dask`). The table reading and writing both share is
-:mod:`kf_train.io.tables`.
+The command streams (:mod:`kf_train.replay.stream`: any size in bounded memory,
+CSV or Parquet) unless ``--engine memory`` asks for
+:func:`kf_train.replay.memory.replay`, which holds the whole table; ``--engine dask``
+runs a fleet on Dask (:mod:`kf_train.replay.fleet_dask`). The table reading and
+writing they share is :mod:`kf_train.io.tables`.
 
 Input CSV: a header row, then one row per measurement. Columns (any order; other
 columns are ignored):
@@ -60,213 +60,25 @@ output goes to a temporary file in the same directory that replaces OUTPUT only 
 complete.
 """
 
-
 import argparse
-import glob
-import os
+import math
 import sys
-import time
-from typing import List, NamedTuple, Optional, Sequence, Tuple
+from typing import List, Optional
 
-from kf_train.batch import (
-    bank_time_steps, DEFAULT_BLOCK_ROWS, filter_table, group_rows, Groups, MAX_ABS_TIME_S,
-    output_header, RailSeriesFilter, resolve_horizon, RowError, rts_smooth, run_bank,
-    run_filter_series, run_linear_series, run_series, SeriesResult, SmootherResult,
-    TimeOrderError)
+from kf_train.batch import RailSeriesFilter
+from kf_train.cli.engine_options import add_engine_options, check_engine_options
 from kf_train.cli.filter_options import add_filter_options, filter_options
-from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
 from kf_train.estimator import RAIL_FILTER_KINDS
-from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S, PARTICLE_KINDS
-from kf_train.io import (
-    format_csv, ID_COLUMN, InputError, read_table, required_columns, resolve_columns,
-    write_atomic)
-from kf_train.presets import (
-    available_presets, is_rail_preset_file, load_preset, load_preset_file, load_rail_preset,
-    Preset, RAIL_PRESET_NAME, RailPreset)
+from kf_train.filters import Filter, FILTER_KINDS, make_filter
+from kf_train.io import is_bag
+from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset
+from kf_train.replay import collector_frozen, load_any_preset, run_engine
 import numpy as np
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 1
 EXIT_USAGE = 2
 
-
-def check_times(path: str, t: np.ndarray, lines: np.ndarray, t0_s: float) -> None:
-    """Raise InputError naming the line of the first time out of range or order."""
-    where = "{path} line {line}, column 't'"
-    big = np.flatnonzero(np.abs(t) > MAX_ABS_TIME_S)
-    if big.size:
-        k = int(big[0])
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f': {float(t[k])!r} s is out of range '
-                         f'(|t| <= {MAX_ABS_TIME_S:g} s)')
-    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
-    t0_ns = int(round(t0_s * NS_PER_S))
-    if t.size and t_ns[0] < t0_ns:
-        raise InputError(where.format(path=path, line=lines[0])
-                         + f': {float(t[0])!r} is before the initial time t0 = {t0_s!r} s '
-                         '(set it with --t0)')
-    bad = np.flatnonzero(np.diff(t_ns) <= 0)
-    if bad.size:
-        k = int(bad[0]) + 1
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f": {float(t[k])!r} is not after the previous row's t = "
-                         f'{float(t[k - 1])!r} '
-                         '(t must increase)')
-
-
-def check_bank_times(path: str, t: np.ndarray, lines: np.ndarray, groups: Groups,
-                     labels: Sequence[str], t0_s: float) -> None:
-    """Raise InputError naming the line of the first time out of range or order per id."""
-    where = "{path} line {line}, column 't'"
-    big = np.flatnonzero(np.abs(t) > MAX_ABS_TIME_S)
-    if big.size:
-        k = int(big[0])
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f': {float(t[k])!r} s is out of range '
-                         f'(|t| <= {MAX_ABS_TIME_S:g} s)')
-    try:
-        bank_time_steps(t, groups, t0_s)
-    except TimeOrderError as error:
-        k, label = error.row, labels[groups.codes[error.row]]
-        if error.previous is None:
-            raise InputError(where.format(path=path, line=lines[k])
-                             + f': {float(t[k])!r} is before the initial time t0 = '
-                             f"{t0_s!r} s of id '{label}' (set it with --t0)") from None
-        j = error.previous
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f": {float(t[k])!r} is not after the previous row's t = "
-                         f"{float(t[j])!r} of id '{label}' (line {lines[j]}); t must "
-                         'increase per id') from None
-
-
-# ---------------------------------------------------------------------------
-# Running and writing
-# ---------------------------------------------------------------------------
-
-def run_preset(preset: Preset, t, z, u=None, *, t0_s: float = 0.0, horizon_s=None,
-               fast: bool = True, filt: Optional[Filter] = None, ids=None,
-               groups: Optional[Groups] = None) -> SeriesResult:
-    """
-    Run a preset over arrays: the vectorised path for linear presets, else the loop.
-
-    With ``ids`` (one label per row; or their ``groups``) every id is an independent
-    object: see :func:`kf_train.batch.series.run_bank`.
-    """
-    if ids is not None or groups is not None:
-        return run_bank(preset, t, z, u, ids, t0_s=t0_s, horizon_s=horizon_s, fast=fast,
-                        filt=filt, groups=groups)
-    if filt is not None:  # --filter: any filter of the family, row by row
-        return run_filter_series(filt, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
-    if fast and preset.linear:
-        return run_linear_series(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
-    return run_series(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
-
-
-def smooth_bank(result: SeriesResult, groups: Groups) -> SmootherResult:
-    """Return the RTS smoothing of every object of a bank on its own rows."""
-    N, n = result.x.shape
-    x, P = result.x.copy(), result.P.copy()
-    gains = np.zeros((N, n, n))    # row k: the gain into k from the object's next row
-    for k in np.flatnonzero(groups.counts > 1):        # one row: already smoothed
-        rows = groups.rows(k)
-        smoothed = rts_smooth(result.x[rows], result.P[rows], result.x_prior[rows],
-                              result.P_prior[rows], result.F[rows])
-        x[rows], P[rows] = smoothed.x, smoothed.P
-        gains[rows[:-1]] = smoothed.gain
-    return SmootherResult(x, P, gains)
-
-
-def output_columns(preset: Preset, result: SeriesResult,
-                   smoothed: Optional[SmootherResult] = None
-                   ) -> Tuple[List[str], List[np.ndarray]]:
-    """Return the output header and columns for a filtered (and smoothed) series."""
-    names = preset.state_names
-    header, columns = ['t'], [result.t_s]
-
-    def add(prefix: str, x: np.ndarray, P: np.ndarray) -> None:
-        for i, name in enumerate(names):
-            header.append(prefix + name)
-            columns.append(x[:, i])
-        for i, name in enumerate(names):
-            header.append('var_' + prefix + name)
-            columns.append(P[:, i, i])
-
-    add('', result.x, result.P)
-    if result.predicted_x is not None:
-        add('predicted_', result.predicted_x, result.predicted_P)
-    if smoothed is not None:
-        add('smoothed_', smoothed.x, smoothed.P)
-    return header, columns
-
-
-class ReplaySummary(NamedTuple):
-    """What a replay did."""
-
-    rows: int
-    columns: List[str]
-    seconds: float
-
-
-def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
-           smooth: bool = False, t0_s: float = 0.0, fast: bool = True,
-           filt: Optional[Filter] = None, block_rows: int = DEFAULT_BLOCK_ROWS,
-           spill_dir: Optional[str] = None) -> ReplaySummary:
-    """
-    Replay ``input_path`` through ``preset`` into ``output_path``; raise InputError.
-
-    The table is read whole, then filtered in blocks of ``block_rows`` exactly as the
-    streamed replay filters it (:func:`kf_train.batch.stream.filter_table`), so both
-    write the same bytes for any input size. ``fast`` False filters the whole table as
-    one block (a complete table only), whatever ``block_rows`` says.
-    """
-    if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
-        raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
-                         'smoother does not apply to particles')
-    start = time.perf_counter()
-    text = None
-    if input_path == '-':
-        text = sys.stdin.buffer.read() if hasattr(sys.stdin, 'buffer') else sys.stdin.read()
-    needed = required_columns(preset)
-    table = read_table(input_path, needed, text, ids=True,
-                       gaps=needed[1:1 + preset.dim_z])
-    t = table.columns['t']
-    if table.ids is None:
-        check_times(input_path, t, table.lines, t0_s)
-    else:
-        check_bank_times(input_path, t, table.lines, group_rows(table.ids), table.id_labels,
-                         t0_s)
-    wanted = resolve_columns(input_path, list(table.columns), needed)
-    z = np.column_stack([table.columns[name] for name in wanted[1:1 + preset.dim_z]]
-                        ) if table.rows else np.empty((0, preset.dim_z))
-    u = None
-    if preset.dim_u:
-        u = np.column_stack([table.columns[name] for name in wanted[1 + preset.dim_z:]]) \
-            if table.rows else np.empty((0, preset.dim_u))
-    if not fast and table.missing is None:
-        block_rows = max(table.rows, 1)
-    try:
-        columns = filter_table(preset, t, z, u, table.ids, horizon_s=horizon_s, t0_s=t0_s,
-                               filt=filt, smooth=smooth, block_rows=block_rows,
-                               missing=table.missing, spill_dir=spill_dir)
-    except RowError as error:
-        raise InputError(f'{input_path} line {table.lines[error.row]}: {error.reason}'
-                         ) from None
-    except ValueError as error:
-        raise InputError(f'{input_path}: {error}') from None
-    header = output_header(preset, resolve_horizon(preset, horizon_s), smooth,
-                           table.missing is not None)
-    if table.ids is None:
-        write_atomic(output_path, format_csv(header, columns))
-    else:
-        header = [ID_COLUMN] + header
-        write_atomic(output_path, format_csv(header, columns, labels=table.id_labels,
-                                             codes=table.ids))
-    return ReplaySummary(table.rows, header, time.perf_counter() - start)
-
-
-# ---------------------------------------------------------------------------
-# Command line
-# ---------------------------------------------------------------------------
 
 def _parser() -> argparse.ArgumentParser:
     """Return the argument parser."""
@@ -361,7 +173,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         preset = load_any_preset(args.preset, args.config)
         filt = _make_filter(preset, args, options)
-        summary = run_engine(args, preset, filt)
+        summary = run_engine(
+            args.engine, preset, args.input, args.output, filt, horizon_s=args.horizon,
+            smooth=args.smooth, t0_s=args.t0, block_rows=args.block_rows, codec=args.codec,
+            spill_dir=args.spill_dir, workers=args.workers, scheduler=args.scheduler)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -369,15 +184,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'kf-train replay: {summary.rows} rows with preset {preset.name} -> '
               f'{args.output} ({summary.seconds:.3f} s)', file=sys.stderr)
     return EXIT_OK
-
-
-def load_any_preset(name: Optional[str], path: Optional[str]):
-    """Return a shipped preset by name or a preset file; rail ones as a RailPreset."""
-    if name == RAIL_PRESET_NAME:
-        return load_rail_preset()
-    if name:
-        return load_preset(name)
-    return load_rail_preset(path) if is_rail_preset_file(path) else load_preset_file(path)
 
 
 def _make_filter(preset, args, options) -> Optional[Filter]:
@@ -393,21 +199,6 @@ def _make_filter(preset, args, options) -> Optional[Filter]:
     return RailSeriesFilter(preset)
 
 
-def is_bag(path: str) -> bool:
-    """Return whether ``path`` names a bag (a .mcap or .db3 file, a directory), not a table."""
-    if path.endswith(('.mcap', '.db3')):
-        return True
-    # A directory holding Parquet files is a dataset for the columnar path, not a bag.
-    return os.path.isdir(path) and not glob.glob(os.path.join(path, '**', '*.parquet'),
-                                                 recursive=True)
-
-
-def bag_replay_module():
-    """Return kf_train.cli.bag_replay (imported when used: it needs rosbags)."""
-    from kf_train.cli import bag_replay
-    return bag_replay
-
-
 def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Run ``kf-train replay BAG``: the node's parameters, not a preset's options."""
     if args.output is None:
@@ -418,7 +209,27 @@ def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                          f'(-p preset:=NAME, -p horizon_s:=S, -p filter:=KIND)')
     if args.smooth:
         parser.error('--smooth applies to a CSV input only')
-    return bag_replay_module().bag_main(args)
+    return _run_bag(args)
+
+
+def _run_bag(args: argparse.Namespace) -> int:
+    """Run the bag replay for parsed ``kf-train replay`` arguments; return the exit code."""
+    from kf_train.replay import bag        # needs rosbags: imported when used
+    try:
+        config = bag.load_config(args.params_file or [], args.parameter or [])
+        with collector_frozen():
+            summary = bag.replay_bag(args.input, args.output, config, args.topic,
+                                     args.control_topic)
+    except ValueError as error:
+        print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
+        return 1
+    rate = summary.measurements / summary.seconds if summary.seconds > 0 else math.inf
+    print(f'kf-train replay: {summary.measurements} measurements on '
+          f'{summary.measurement_topic}, {summary.controls} controls, '
+          f'{summary.rejected} rejected -> {summary.estimates} estimates in '
+          f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
+          file=sys.stderr)
+    return 0
 
 
 if __name__ == '__main__':

@@ -37,10 +37,11 @@ import contextlib
 import os
 from typing import Callable, List, NamedTuple, Optional
 
-from kf_train.batch import group_rows, Segment
-from kf_train.cli.replay import check_bank_times, check_times, is_bag
-from kf_train.io import ID_COLUMN, InputError, read_table, required_columns, resolve_columns
+from kf_train.batch import group_rows, MAX_ABS_TIME_S, Segment
+from kf_train.io import (
+    check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns, resolve_columns)
 from kf_train.presets import Preset
+from kf_train.replay import check_bank_times
 import numpy as np
 
 TRUTH_PREFIX = 'true_'
@@ -108,7 +109,7 @@ def table_segments(path: str, preset: Preset, columns: dict, lines: np.ndarray,
         raise InputError(f'{path}: no rows: nothing to estimate from')
     first = float(np.min(t))
     if ids is None:
-        check_times(path, t, lines, first)
+        check_times(path, t, lines, first, MAX_ABS_TIME_S)
     else:
         check_bank_times(path, t, lines, group_rows(ids), id_labels, first)
     if missing is not None and missing.any():

@@ -15,6 +15,7 @@ import io
 from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 import warnings
 
+from kf_train.filters import NS_PER_S
 from kf_train.io import csvio
 from kf_train.presets import Preset
 import numpy as np
@@ -22,6 +23,7 @@ import numpy as np
 HEADER_LINE = 1
 ID_COLUMN = 'id'
 UTF8_BOM = b'\xef\xbb\xbf'
+TIME_CELL = "{path} line {line}, column 't'"
 
 
 class InputError(ValueError):
@@ -259,3 +261,47 @@ def format_csv(header: Sequence[str], columns: Sequence[np.ndarray],
     prefix = None if labels is None else (csvio.format_labels(labels), codes)
     for start in range(0, N, rows_per_chunk):
         yield csvio.format_rows(columns, start, min(start + rows_per_chunk, N), prefix)
+
+
+def check_time_range(path: str, t: np.ndarray, lines: np.ndarray, max_abs_s: float) -> None:
+    """Raise InputError naming the line of the first time beyond ±``max_abs_s``."""
+    big = np.flatnonzero(np.abs(t) > max_abs_s)
+    if big.size:
+        k = int(big[0])
+        raise InputError(TIME_CELL.format(path=path, line=lines[k])
+                         + f': {float(t[k])!r} s is out of range (|t| <= {max_abs_s:g} s)')
+
+
+def check_times(path: str, t: np.ndarray, lines: np.ndarray, t0_s: float,
+                max_abs_s: float) -> None:
+    """Raise InputError naming the line of the first time out of range or order."""
+    check_time_range(path, t, lines, max_abs_s)
+    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
+    t0_ns = int(round(t0_s * NS_PER_S))
+    if t.size and t_ns[0] < t0_ns:
+        raise InputError(TIME_CELL.format(path=path, line=lines[0])
+                         + f': {float(t[0])!r} is before the initial time t0 = {t0_s!r} s '
+                         '(set it with --t0)')
+    bad = np.flatnonzero(np.diff(t_ns) <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise InputError(TIME_CELL.format(path=path, line=lines[k])
+                         + f": {float(t[k])!r} is not after the previous row's t = "
+                         f'{float(t[k - 1])!r} (t must increase)')
+
+
+def time_order_error(path: str, t: np.ndarray, lines: np.ndarray, t0_s: float, row: int,
+                     previous: Optional[int], label: str) -> InputError:
+    """
+    Return the InputError for an id's row out of time order (``previous``: its last row).
+
+    ``previous`` None: the id's first row is before t0. The rows are those
+    :func:`kf_train.batch.bank_time_steps` names in its TimeOrderError.
+    """
+    where = TIME_CELL.format(path=path, line=lines[row])
+    if previous is None:
+        return InputError(where + f': {float(t[row])!r} is before the initial time t0 = '
+                          f"{t0_s!r} s of id '{label}' (set it with --t0)")
+    return InputError(where + f": {float(t[row])!r} is not after the previous row's t = "
+                      f"{float(t[previous])!r} of id '{label}' (line {lines[previous]}); t "
+                      'must increase per id')

@@ -2,7 +2,7 @@
 The streamed replay's two-thread pipeline (reader ahead, writer behind) changes no byte.
 
 kf-train replay --engine stream reads the next piece in a thread
-(:func:`kf_train.cli.replay_stream.prefetch`) and writes the previous block in another
+(:func:`kf_train.replay.stream.prefetch`) and writes the previous block in another
 (:func:`kf_train.io.table_output.in_background`) while the main thread filters. Here
 both are replaced by plain sequential loops and the outputs compared byte for byte on
 inputs of many blocks (and many reader pieces), with and without ids, gaps, --smooth;
@@ -11,9 +11,9 @@ an error raised inside a stage is the one-line error, with no partial output lef
 
 import os
 
-from kf_train.cli import replay_stream
 from kf_train.cli.replay import main
 from kf_train.io import columnar, table_output
+from kf_train.replay import stream as replay_stream
 import numpy as np
 import pytest
 

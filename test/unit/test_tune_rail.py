@@ -8,13 +8,13 @@ from kf_train.batch.rail_checks import rail_check
 from kf_train.batch.rail_likelihood import rail_log_likelihoods, RailNoise
 from kf_train.batch.rail_series import RailSeriesFilter
 from kf_train.cli import main as kf_train_main
-from kf_train.cli.bag_replay import load_config
 from kf_train.cli.rail_fit import derivatives, stencil
 from kf_train.cli.tune import main as tune_main
 from kf_train.estimator import EstimatorSettings, StreamEstimator
 from kf_train.estimator.live_presets import resolve_preset
 from kf_train.filters import chi2_mean_bounds, RailModel, RailModelParameters
 from kf_train.presets import load_rail_preset, RailPreset
+from kf_train.replay.bag import load_config
 from kf_train.sim.rail import rail_scenario
 import numpy as np
 import pytest

@@ -1,5 +1,5 @@
 """
-Files written whole: the output-path check and the atomic write.
+Paths: what an input path names (:func:`is_bag`), the output-path check, the atomic write.
 
 Every output (a CSV, a params or preset file, a Parquet file or dataset, a bag) is
 first written beside its target under a temporary name and moved into place when
@@ -7,10 +7,20 @@ complete, so a failure leaves an existing target as it was. :func:`check_output_
 says before the work, in one line, why a target cannot be written.
 """
 
+import glob
 import os
 import sys
 import tempfile
 from typing import Iterable
+
+
+def is_bag(path: str) -> bool:
+    """Return whether ``path`` names a bag (a .mcap or .db3 file, a directory), not a table."""
+    if path.endswith(('.mcap', '.db3')):
+        return True
+    # A directory holding Parquet files is a dataset for the columnar path, not a bag.
+    return os.path.isdir(path) and not glob.glob(os.path.join(path, '**', '*.parquet'),
+                                                 recursive=True)
 
 
 def check_output_path(path: str, dataset: bool = False) -> None:

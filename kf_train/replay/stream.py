@@ -12,7 +12,7 @@ Two CSV paths give the same bytes:
   anything it cannot vouch for (blank lines, a bad cell, an error to report) sends
   the whole replay back to the start on the built-in path, which names the line;
 * without it, the built-in path: the file in blocks of lines, each parsed by
-  :func:`kf_train.cli.replay.read_table` and written by :mod:`kf_train.io.csvio`.
+  :func:`kf_train.io.tables.read_table` and written by :mod:`kf_train.io.csvio`.
 
 Parquet needs the extra. Output goes to a temporary file (or directory) beside OUTPUT
 that replaces it only when complete, so bad input leaves no partial output.
@@ -36,11 +36,11 @@ import time
 from typing import Dict, Iterator, List, Optional
 
 from kf_train.batch import DEFAULT_BLOCK_ROWS, GapsFound, RowError, Rows, StreamingReplay
-from kf_train.cli import replay as inmemory
-from kf_train.cli.progress import Progress
 from kf_train.io import (
     columnar, decode_text, HEADER_LINE, header_names, ID_COLUMN, InputError, open_output,
     read_table, required_columns, resolve_columns, UTF8_BOM)
+from kf_train.replay.memory import ReplaySummary
+from kf_train.replay.progress import Progress
 import numpy as np
 
 # Bytes of CSV text the built-in reader parses at a time.
@@ -375,7 +375,7 @@ def _sources(preset, input_path: str, fast: bool) -> List[Source]:
 def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
                   smooth: bool = False, t0_s: float = 0.0, filt=None,
                   block_rows: int = DEFAULT_BLOCK_ROWS, codec: str = 'auto',
-                  spill_dir: Optional[str] = None) -> inmemory.ReplaySummary:
+                  spill_dir: Optional[str] = None) -> ReplaySummary:
     """
     Replay ``input_path`` into ``output_path`` in bounded memory; raise InputError.
 
@@ -401,7 +401,7 @@ def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
             except GapsFound:                  # rows without a measurement: again, with
                 options['gaps'] = True         # the column that flags them
                 continue
-            return inmemory.ReplaySummary(rows, header, time.perf_counter() - start)
+            return ReplaySummary(rows, header, time.perf_counter() - start)
     finally:
         if spooled is not None:
             os.unlink(spooled)

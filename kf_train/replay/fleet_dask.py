@@ -21,8 +21,9 @@ import tempfile
 import time
 
 from kf_train.batch import filter_partition, partition_meta
-from kf_train.cli import replay as inmemory
 from kf_train.io import ID_COLUMN, InputError, required_columns
+from kf_train.replay.memory import ReplaySummary
+from kf_train.replay.stream import is_parquet
 
 KEY = '_kf_train_row'
 # Rows per partition and above: enough to hold a 2**40-row partition's row numbers.
@@ -46,7 +47,6 @@ def _filter_in_order(partition, preset, options):
 
 def _read(dd, path: str, columns):
     """Return the input as a Dask DataFrame with ``columns``."""
-    from kf_train.cli.replay_stream import is_parquet
     if is_parquet(path):
         return dd.read_parquet(path, columns=columns)
     return dd.read_csv(path, usecols=columns, dtype={'id': str}, blocksize='64MB')
@@ -65,7 +65,7 @@ def _client(workers: int, scheduler):
 
 def dask_replay(preset, input_path: str, output_path: str, *, workers: int = 2,
                 scheduler=None, horizon_s=None, smooth: bool = False, t0_s: float = 0.0,
-                filt=None) -> inmemory.ReplaySummary:
+                filt=None) -> ReplaySummary:
     """Replay a fleet log on Dask; raise InputError for bad input."""
     try:
         import dask.dataframe as dd
@@ -95,7 +95,7 @@ def dask_replay(preset, input_path: str, output_path: str, *, workers: int = 2,
         if cluster is not None:
             cluster.close()
     header = list(meta.columns.drop(KEY))
-    return inmemory.ReplaySummary(rows, header, time.perf_counter() - start)
+    return ReplaySummary(rows, header, time.perf_counter() - start)
 
 
 def _write(estimates, output_path: str) -> int:
