@@ -31,14 +31,14 @@ pytestmark = pytest.mark.linter
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PACKAGE_DIR = os.path.join(REPO, 'kf_train')
 FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
-          'ros': 4, 'replay': 5, 'cli': 7}
+          'ros': 4, 'replay': 5, 'tune': 5, 'cli': 7}
 COMPATIBILITY = 'core'
 ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
             'rcl_interfaces')
 # Standard library modules only some packages may import: the package(s) allowed.
 RESTRICTED = {'argparse': ('cli',), 'subprocess': ('cli',)}
 # Optional libraries (extras): the package(s) owning their job; imported lazily.
-OPTIONAL = {'scipy': ('tune', 'cli'), 'matplotlib': ('plots', 'cli'), 'polars': ('io',),
+OPTIONAL = {'scipy': ('tune',), 'matplotlib': ('plots', 'cli'), 'polars': ('io',),
             'dask': ('replay', 'batch'), 'rosbags': ('io',), 'tqdm': ('replay',),
             'numba': ('filters', 'batch')}
 ORACLES = ('filterpy', 'pykalman', 'simdkalman')
@@ -238,6 +238,7 @@ EXPORTS = {'filters': ['predict', 'kalman'], 'presets': ['load_preset'],
     ('tune', 'class A:\n    from scipy import optimize\n', 'import it inside the function'),
     ('io', 'try:\n    import polars\nexcept ImportError:\n    pass\n',
      'import it inside the function'),
+    ('replay', 'from kf_train.tune import fit\n', 'imports point down'),
     ('plots', 'from kf_train.cli import main\n', 'imports point down'),
     ('batch', 'import filterpy.kalman\n', 'oracle'),
     ('cli', 'from kf_train.core import TrainEstimator\n', 'old API'),
