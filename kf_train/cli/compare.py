@@ -272,7 +272,7 @@ def write_curves(comparison: Comparison, path: str) -> str:
 
 def comparison_figure(comparison: Comparison):
     """Return the figure: position RMSE and ANEES (with its 99% bounds) against time."""
-    from kf_train.cli.plotting import new_figure
+    from kf_train.plots import new_figure
     figure, (ax_rmse, ax_nees) = new_figure(2, 1, size=(8.0, 7.0))
     colours = {'kf': 'tab:blue', 'ekf': 'tab:blue', 'ukf': 'tab:green', 'pf': 'tab:red',
                'bootstrap-pf': 'tab:orange'}
@@ -358,7 +358,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         stem = os.path.join(args.output_dir, f'compare-{comparison.preset}')
         written = [write_curves(comparison, stem + '.csv')]
         if not args.no_figure:
-            from kf_train.cli.plotting import save
+            from kf_train.plots import save
             written.append(save(comparison_figure(comparison), stem + '.png'))
     except (ValueError, OSError) as error:
         print(f'kf-train compare: error: {" ".join(str(error).split())}', file=sys.stderr)

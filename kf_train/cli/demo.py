@@ -539,15 +539,14 @@ def _write_data(output_dir: Path, series: DemoSeries) -> None:
 
 def _write_figures(output_dir: Path, series: DemoSeries) -> None:
     """
-    Draw seed 000's figures with kf_train.cli.plotting, when that module is available.
+    Draw seed 000's figures with kf_train.plots, when matplotlib is available.
 
     The single call site of the plotting module. x_hist and P_hist hold the N samples
     (no prior row); P_hist is the offline core's full covariance, equal to the received
     variances on its diagonal.
     """
     try:
-        from kf_train.cli import plotting
-        seed000_figures = plotting.seed000_figures
+        from kf_train.plots import seed000_figures
     except (ImportError, AttributeError):
         _progress('figures: not available')
         return

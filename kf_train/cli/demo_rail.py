@@ -17,7 +17,7 @@ constant-acceleration Kalman filter each tuned in hindsight on this very run
 (:func:`kf_train.sim.tuned_baselines`); checks that what crossed DDS equals the
 offline core (:class:`StreamEstimator` fed the received measurements) and the seeded
 offline run; and draws ``rail.png``
-(:mod:`kf_train.cli.rail_figure`). Outputs go to ``<output-dir>/rail``.
+(:mod:`kf_train.plots.rail_figure`). Outputs go to ``<output-dir>/rail``.
 """
 
 import dataclasses
@@ -318,10 +318,10 @@ def _score_line(label: str, result: Score) -> str:
 
 
 def _draw(output_dir: Path, rail: RailPlan, series: RailSeries) -> Optional[str]:
-    """Draw rail.png with kf_train.cli.rail_figure; return its path (None without it)."""
+    """Draw rail.png with kf_train.plots.rail_figure; return its path (None without it)."""
     try:
-        from kf_train.cli import rail_figure
-        path = rail_figure.rail_figure(
+        from kf_train.plots import rail_figure
+        path = rail_figure(
             str(output_dir / 'rail.png'), series, rail.run, rail.stop, RAIL_HORIZON_S)
     except (ImportError, RuntimeError) as error:
         seed_demo._progress(f'rail: figure not drawn: {error}')

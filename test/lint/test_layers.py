@@ -31,14 +31,14 @@ pytestmark = pytest.mark.linter
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PACKAGE_DIR = os.path.join(REPO, 'kf_train')
 FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
-          'ros': 4, 'replay': 5, 'tune': 5, 'cli': 7}
+          'ros': 4, 'replay': 5, 'tune': 5, 'plots': 6, 'cli': 7}
 COMPATIBILITY = 'core'
 ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
             'rcl_interfaces')
 # Standard library modules only some packages may import: the package(s) allowed.
 RESTRICTED = {'argparse': ('cli',), 'subprocess': ('cli',)}
 # Optional libraries (extras): the package(s) owning their job; imported lazily.
-OPTIONAL = {'scipy': ('tune',), 'matplotlib': ('plots', 'cli'), 'polars': ('io',),
+OPTIONAL = {'scipy': ('tune',), 'matplotlib': ('plots',), 'polars': ('io',),
             'dask': ('replay', 'batch'), 'rosbags': ('io',), 'tqdm': ('replay',),
             'numba': ('filters', 'batch')}
 ORACLES = ('filterpy', 'pykalman', 'simdkalman')

@@ -2,7 +2,7 @@
 The rail demo's figure: a stop seen by the estimator, and its regime probabilities.
 
 Four panels on one PNG (matplotlib's Agg canvas through
-:func:`kf_train.cli.plotting.new_figure`; no pyplot):
+:func:`kf_train.plots.figures.new_figure`; no pyplot):
 
 1. Around the stop: distance still to go to the stopping point, true and estimated,
    and the position predicted ``horizon_s`` earlier for each time with its ±2σ band.
@@ -15,7 +15,7 @@ Four panels on one PNG (matplotlib's Agg canvas through
 fields), ``run`` the exact truth (:class:`kf_train.sim.RailRun`).
 """
 
-from kf_train.cli.plotting import new_figure, save
+from kf_train.plots.figures import new_figure, save
 import numpy as np
 
 BEFORE_ARRIVAL_S = 30.0
