@@ -31,7 +31,7 @@ pytestmark = pytest.mark.linter
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PACKAGE_DIR = os.path.join(REPO, 'kf_train')
 FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
-          'ros': 4, 'replay': 5, 'tune': 5, 'plots': 6, 'cli': 7}
+          'ros': 4, 'replay': 5, 'tune': 5, 'evaluate': 5, 'plots': 6, 'cli': 7}
 COMPATIBILITY = 'core'
 ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
             'rcl_interfaces')
