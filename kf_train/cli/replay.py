@@ -34,7 +34,7 @@ as Python's shortest round-trip ``repr`` writes them (:mod:`kf_train.io.csvio`
 produces the same text in bulk): reading them back gives the computed doubles exactly.
 
 With an ``id`` column, linear presets run as a vectorised bank
-(:func:`kf_train.batch.series.run_bank`: ids with few rows in lock-step, ids with many
+(:func:`kf_train.batch.bank.run_bank`: ids with few rows in lock-step, ids with many
 along their own time axis); the results equal filtering each id alone. The EKF preset
 and ``--filter`` run id by id.
 

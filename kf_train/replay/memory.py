@@ -45,7 +45,7 @@ def run_preset(preset: Preset, t, z, u=None, *, t0_s: float = 0.0, horizon_s=Non
     Run a preset over arrays: the vectorised path for linear presets, else the loop.
 
     With ``ids`` (one label per row; or their ``groups``) every id is an independent
-    object: see :func:`kf_train.batch.series.run_bank`.
+    object: see :func:`kf_train.batch.bank.run_bank`.
     """
     if ids is not None or groups is not None:
         return run_bank(preset, t, z, u, ids, t0_s=t0_s, horizon_s=horizon_s, fast=fast,

@@ -4,7 +4,7 @@ What ``kf-train tune`` reads: a replay CSV, Parquet, or a rosbag2 bag, as tuning
 The inputs are those of ``kf-train replay``, read by the replay's own readers:
 
 * a CSV (or '-', standard input): the replay's table reader
-  (:func:`kf_train.cli.replay.read_table`: ``t``, the measurement columns, ``u``
+  (:func:`kf_train.io.read_table`: ``t``, the measurement columns, ``u``
   where the preset has a control, optionally ``id``), plus optional truth columns
   ``true_<state>``; a row with an empty measurement cell (a dropped sample) is left
   out, as the node never receives it;
@@ -39,6 +39,7 @@ from typing import Callable, List, NamedTuple, Optional
 
 from kf_train.batch import (
     bank_time_steps, group_rows, Groups, MAX_ABS_TIME_S, Segment, TimeOrderError)
+from kf_train.filters import NS_PER_S
 from kf_train.io import (
     check_time_range, check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns,
     resolve_columns, time_order_error)
@@ -46,7 +47,6 @@ from kf_train.presets import Preset
 import numpy as np
 
 TRUTH_PREFIX = 'true_'
-NS_PER_S = 1_000_000_000
 DEFAULT_TRUTH_TOPIC = 'ground_truth'
 OUT_OF_ORDER_S = 1.0
 """A stamp this far behind the newest starts a new segment (the node's default history_s)."""

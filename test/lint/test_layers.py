@@ -39,7 +39,7 @@ ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
 RESTRICTED = {'argparse': ('cli',), 'subprocess': ('cli',)}
 # Optional libraries (extras): the package(s) owning their job; imported lazily.
 OPTIONAL = {'scipy': ('tune',), 'matplotlib': ('plots',), 'polars': ('io',),
-            'dask': ('replay', 'batch'), 'rosbags': ('io',), 'tqdm': ('replay',),
+            'dask': ('replay',), 'rosbags': ('io',), 'tqdm': ('replay',),
             'numba': ('filters', 'batch')}
 ORACLES = ('filterpy', 'pykalman', 'simdkalman')
 
