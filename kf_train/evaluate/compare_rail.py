@@ -10,7 +10,8 @@ its first measurement as the streaming estimator's default starts
 (:class:`kf_train.batch.RailSeriesFilter`). The truth has position, velocity and
 acceleration, so the NEES is taken over those three states (the filter's other
 states, the commanded acceleration and the capabilities A and B, have no truth).
-The table, curves and figure are :mod:`kf_train.cli.compare`'s.
+The scores are :mod:`kf_train.evaluate.scores`'; the table, curves and figure those of
+``kf-train compare`` (:mod:`kf_train.cli.compare`).
 """
 
 import dataclasses

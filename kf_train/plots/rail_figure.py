@@ -12,7 +12,8 @@ Four panels on one PNG (matplotlib's Agg canvas through
 4. The regime probabilities over the whole run, the true stops shaded.
 
 ``series`` is a :class:`kf_train.cli.demo_rail.RailSeries` (any object with its
-fields), ``run`` the exact truth (:class:`kf_train.sim.RailRun`).
+fields: the demo is a command, a floor above), ``run`` the exact truth
+(:class:`kf_train.sim.RailRun`).
 """
 
 from kf_train.plots.figures import new_figure, save

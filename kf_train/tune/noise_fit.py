@@ -4,8 +4,8 @@ Maximum-likelihood noise with confidence intervals: q, R (and initial state) fro
 The likelihood is the estimator node's own (:class:`kf_train.batch.TuningProblem`), the
 estimated quantities a :class:`kf_train.batch.NoiseParameterisation`. The optimiser is
 scipy's (L-BFGS-B, Brent): scipy is the optional extra of ``kf-train tune`` (``pip
-install kf_train[tune]``), imported only inside these functions and only in this
-command-line floor, never by the nodes.
+install kf_train[tune]``), imported only inside these functions and only in
+:mod:`kf_train.tune`, never by the nodes.
 
 The confidence intervals come from the curvature of ℓ at its maximum (the observed
 information, inverted: the Wald interval in the optimiser's coordinates, mapped back by
