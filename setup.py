@@ -47,9 +47,9 @@ setup(
         'fast': ['polars'],
         # kf-train replay --engine dask: fleets on a Dask cluster (pyarrow, pandas with it)
         'dask': ['dask[dataframe]', 'distributed', 'polars'],
-        # kf-train tune's optimiser (kf_train.cli.noise_fit); never the nodes'
+        # kf-train tune's optimiser (kf_train.tune.noise_fit); never the nodes'
         'tune': ['scipy'],
-        # a progress bar for long offline replays on a terminal: kf_train.cli.progress
+        # a progress bar for long offline replays on a terminal: kf_train.replay.progress
         'progress': ['tqdm'],
     },
     zip_safe=True,

@@ -149,7 +149,7 @@ def split(bag: str, parameters: List[str], repeats: int = 2) -> dict:
 
 def _split_once(bag: str, parameters: List[str]) -> dict:
     """Return CPU seconds of each part once (see :func:`split`)."""
-    from kf_train.cli import bag_replay
+    from kf_train.replay import bag as bag_replay
     from kf_train.estimator import Rejected, StreamEstimator
     from kf_train.io import bagio
     from kf_train.ros.session import EstimatorSession

@@ -188,8 +188,8 @@ def row_replay(quick: bool) -> List[Row]:
     """
     from kf_train.batch import run_bank, run_series
     from kf_train.batch.stream import filter_table
-    from kf_train.cli import replay
-    from kf_train.io import csvio
+    from kf_train.replay import memory as replay
+    from kf_train.io import csvio, read_table
     from kf_train.presets import available_presets, load_preset
     import numpy as np
 
@@ -228,7 +228,7 @@ def row_replay(quick: bool) -> List[Row]:
                                      1 if quick else 2)
             header, _ = replay.output_columns(preset, replay.run_preset(
                 preset, t[:1], z[:1], None if u is None else u[:1]))
-            out = replay.read_table(target, [(h,) for h in header]).columns
+            out = read_table(target, [(h,) for h in header]).columns
             written = np.column_stack([out[name] for name in preset.state_names])
             # The text round trip: the numbers read back are those the replay computed
             # (in its blocks, as every engine does: kf_train.batch.stream.filter_table).
@@ -302,7 +302,8 @@ def _bank_rows(replay, csvio, preset, directory: str, quick: bool, run_bank, run
         stream.write(csvio.format_rows([t, z[:, 0]], prefix=(csvio.format_labels(
             [f'train{k}' for k in range(ids_n)]), ids)))
     seconds = _fresh_best_of(lambda: replay.replay(preset, source, target), target, 1)
-    table = replay.read_table(target, [('t',), ('position',), ('var_position',)], ids=True)
+    from kf_train.io import read_table
+    table = read_table(target, [('t',), ('position',), ('var_position',)], ids=True)
     exact = bool(np.array_equal(table.columns['position'], bank.x[:, 0]))
     result.append(('2', 'replay, id column, CSV to CSV', f'preset train, {ids_n:,} ids × '
                    f'{per_id:,} rows', f'{n / seconds:,.0f} rows/s; text round trip '

@@ -4,7 +4,7 @@ What ``kf-train tune --preset rail`` costs: one pass of K settings, and a whole 
 A simulated metro run (``--seed``, ``--rows`` fixes at 10 Hz, σ = 1 m) is given to
 :func:`kf_train.batch.rail_log_likelihoods` with K = 1, 7 and 19 settings (one setting:
 one IMM run; 7 and 19: the stencils of the fit's Newton steps with two and three
-noises), and to the whole fit (:func:`kf_train.cli.rail_fit.fit_rail_noise`, the
+noises), and to the whole fit (:func:`kf_train.tune.rail_fit.fit_rail_noise`, the
 acceleration and command noises and R). For comparison it times the node's own classes
 (RailModel.predict/update, one setting). Best of ``--repeat`` for the passes.
 Run: ``.venv/bin/python benchmarks/tune_rail_cost.py [--rows 6000]``. It prints
@@ -15,9 +15,9 @@ import argparse
 import time
 
 from kf_train.batch import rail_log_likelihoods, RailNoise, Segment
-from kf_train.cli.rail_fit import fit_rail_noise
 from kf_train.filters import RailModel, RailModelParameters
 from kf_train.sim.rail import rail_scenario
+from kf_train.tune import fit_rail_noise
 import numpy as np
 
 

@@ -7,7 +7,7 @@ holding at the first row's time (pykalman's convention: its first observation is
 corrected without a prediction). Data: :func:`kf_train.sim.white_noise_acceleration_scenario`
 with known q and R. Three estimators, each on the same rows:
 
-* ``kf-train tune``: :func:`kf_train.cli.noise_fit.estimate_noise` (L-BFGS-B on the exact
+* ``kf-train tune``: :func:`kf_train.tune.noise_fit.estimate_noise` (L-BFGS-B on the exact
   log-likelihood of the innovations of kf_train's vectorised filter);
 * EM on the same structured model, Q = q·Q₁(dt): pykalman's own E-step (its filter,
   RTS smoother and lag-one covariances) and its M-step statistics, projected on the
@@ -31,9 +31,9 @@ from typing import NamedTuple
 
 from kf_train.batch import (
     make_segment, NoiseParameterisation, NoiseSetting, noisy_preset, TuningProblem)
-from kf_train.cli.noise_fit import estimate_noise
 from kf_train.presets import load_preset
 from kf_train.sim import white_noise_acceleration_scenario
+from kf_train.tune import estimate_noise
 import numpy as np
 
 DT_S = 0.1

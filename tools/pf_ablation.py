@@ -15,7 +15,7 @@ import sys
 import time
 
 from kf_train.batch import time_steps_s
-from kf_train.cli.compare import anees_bounds, derived_seed, nees
+from kf_train.evaluate import anees_bounds, derived_seed, nees
 from kf_train.filters import ParticleFilter, psd_factor, RegularisedParticleFilter
 from kf_train.presets import load_preset
 from kf_train.sim import scenario_for_preset

@@ -7,7 +7,7 @@ moves, and back. Variances and the density are its logarithms (positive, and the
 likelihood is closer to quadratic in them); the initial state is on its natural scale.
 It also gives the optimiser a start (moment estimates of the data) and a box.
 
-The estimator (``kf_train.cli.noise_fit.estimate_noise``, which needs scipy) asks only
+The estimator (``kf_train.tune.noise_fit.estimate_noise``, which needs scipy) asks only
 for the interfaces :class:`LikelihoodProblem` and :class:`Parameterisation`: other
 models (the regime noises of a rail IMM model) plug in by providing them.
 """

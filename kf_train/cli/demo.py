@@ -24,18 +24,19 @@ Exit codes: 0 success, 1 a node failed, discovery timed out or samples were miss
 
 import argparse
 import csv
-import dataclasses
 import math
 import os
 from pathlib import Path
 import signal
-import subprocess
 import sys
-import time
-from typing import Callable, Dict, List, NamedTuple, Optional, Sequence
+from typing import Dict, NamedTuple, Optional, Sequence
 
+from kf_train.cli.demo_processes import (
+    Child, demo_environment, DemoError, DISCOVERY_TIMEOUT_S, estimator_settings,
+    EXIT_TIMEOUT_S, expect_exit, HOLD_SUBSCRIBERS, progress, raise_on_sigterm, spin_until,
+    start, stop, Terminated, wait_connected)
 from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
-from kf_train.ros import demo_nodes, diagnostics, messages
+from kf_train.ros import demo_nodes, messages
 from kf_train.sim import extrapolate, raw_difference_velocity, running_average, TrainSimulation
 import numpy as np
 
@@ -47,12 +48,6 @@ HORIZON_S = 2.0
 WINDOW = 5
 """Seed 000's running-average window [samples]."""
 
-MAX_DOMAIN_ID = 232
-HOLD_SUBSCRIBERS = 1000
-"""The simulator's largest min_subscribers: it holds the first sample until released."""
-DISCOVERY_TIMEOUT_S = 20.0
-EXIT_TIMEOUT_S = 10.0
-STOP_TIMEOUT_S = 5.0
 
 TOPICS = demo_nodes.TOPICS
 """The topics the probe records, with their message types."""
@@ -61,21 +56,6 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
-
-
-class _Child(NamedTuple):
-    """A node process and the file its output goes to."""
-
-    process: subprocess.Popen
-    log_path: Path
-
-
-class DemoError(Exception):
-    """A failure the demo reports as one line and exit code 1."""
-
-
-class _Terminated(Exception):
-    """SIGTERM reached the demo."""
 
 
 class DemoSeries(NamedTuple):
@@ -137,18 +117,18 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f'kf-train demo: error: --timeout-s must be > 0, got {args.timeout_s}',
               file=sys.stderr)
         return EXIT_USAGE
-    previous_sigterm = _raise_on_sigterm()
+    previous_sigterm = raise_on_sigterm()
     try:
         report = run_demo(args.seed, Path(args.output_dir), args.timeout_s)
         if not args.skip_rail:
             print(report + '\n', flush=True)
-            from kf_train.cli import demo_rail  # (it builds on this module)
+            from kf_train.cli import demo_rail  # (imported when its run is asked for)
             report = demo_rail.run_rail_demo(args.seed, Path(args.output_dir),
                                              args.timeout_s)
     except DemoError as error:
         print(f'kf-train demo: error: {error}', file=sys.stderr)
         return EXIT_FAILED
-    except (KeyboardInterrupt, demo_nodes.ExternalShutdownException, _Terminated):
+    except (KeyboardInterrupt, demo_nodes.ExternalShutdownException, Terminated):
         print('kf-train demo: interrupted; nodes stopped', file=sys.stderr)
         return EXIT_INTERRUPTED
     finally:
@@ -167,26 +147,26 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
                         f'{error.strerror}') from None
     env = demo_environment(os.environ)
     domain_id = int(env['ROS_DOMAIN_ID'])
-    _progress(f'ROS_DOMAIN_ID={domain_id}: seed 000, {SAMPLES} samples at {RATE_HZ:g} Hz, '
-              f'noise seed {seed}; node logs in {output_dir}')
-    children: Dict[str, _Child] = {}
+    progress(f'ROS_DOMAIN_ID={domain_id}: seed 000, {SAMPLES} samples at {RATE_HZ:g} Hz, '
+             f'noise seed {seed}; node logs in {output_dir}')
+    children: Dict[str, Child] = {}
     context = demo_nodes.Context()
     saved_range = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
     try:
         _start_nodes(children, seed, env, output_dir)
-        _progress(f'started the estimator (pid {children["estimator"].process.pid}) and '
-                  f'the simulator (pid {children["simulator"].process.pid})')
+        progress(f'started the estimator (pid {children["estimator"].process.pid}) and '
+                 f'the simulator (pid {children["simulator"].process.pid})')
         # rcl reads the discovery range from the environment at init.
         os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = env['ROS_AUTOMATIC_DISCOVERY_RANGE']
         executor, probe = demo_nodes.start_probe(context, domain_id)
-        if not _spin_until(executor, probe.sees_nodes, DISCOVERY_TIMEOUT_S, children):
+        if not spin_until(executor, probe.sees_nodes, DISCOVERY_TIMEOUT_S, children):
             raise DemoError(
                 f'discovery timed out after {DISCOVERY_TIMEOUT_S:g} s: the probe does not '
                 f'see both nodes in ROS_DOMAIN_ID={domain_id} (see the logs in {output_dir})')
         # Seeing the estimator does not mean it sees the probe (discovery is not
         # symmetric): its answer to a service call does, and then it also knows the
         # probe's older estimate and prediction subscriptions.
-        settings = _estimator_settings(executor, probe)
+        settings = estimator_settings(executor, probe)
         wait_connected(executor, probe, children)
         # Everything else is subscribed. The simulator waits for every measurement
         # subscriber the probe knows of (the estimator, the probe, anyone else's in a
@@ -197,9 +177,9 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
                                            subscribers, DISCOVERY_TIMEOUT_S)
         if problem is not None:
             raise DemoError(f'cannot release the simulator: {problem}')
-        _progress(f'both nodes up; sampling for {SAMPLES / RATE_HZ:g} s')
-        if not _spin_until(executor, lambda: _complete(probe), timeout_s, children,
-                           simulator_may_finish=True):
+        progress(f'both nodes up; sampling for {SAMPLES / RATE_HZ:g} s')
+        if not spin_until(executor, lambda: _complete(probe), timeout_s, children,
+                          simulator_may_finish=True):
             counts = ', '.join(f'{topic} {n}' for topic, n in probe.counts().items())
             raise DemoError(f'samples missing after {timeout_s:g} s: received {counts} '
                             f'of {SAMPLES} each')
@@ -208,10 +188,10 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
         # the report only once both nodes have exited cleanly.
         series = build_series(probe, seed, settings)
         _write_data(output_dir, series)
-        _expect_exit(children, 'simulator', EXIT_TIMEOUT_S)
-        _expect_exit(children, 'estimator', EXIT_TIMEOUT_S)
+        expect_exit(children, 'simulator', EXIT_TIMEOUT_S)
+        expect_exit(children, 'estimator', EXIT_TIMEOUT_S)
     finally:
-        _stop(children)
+        stop(children)
         context.try_shutdown()
         if saved_range is None:
             os.environ.pop('ROS_AUTOMATIC_DISCOVERY_RANGE', None)
@@ -219,177 +199,28 @@ def run_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
             os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = saved_range
     report = format_report(series, domain_id, seed, settings)
     (output_dir / 'report.txt').write_text(report + '\n')
-    _progress(f'wrote report.txt and series.csv to {output_dir}')
+    progress(f'wrote report.txt and series.csv to {output_dir}')
     return report
 
 
-def wait_connected(executor, probe: demo_nodes.Probe, children: Dict[str, '_Child'],
-                   prefix: str = '') -> None:
-    """Spin until the estimator reports its input and outputs matched (or raise DemoError)."""
-    # The probe's own view cannot show it: DDS matches each end of a topic separately,
-    # and the estimator's best-effort reader drops samples from a writer it has not
-    # matched yet. Its /diagnostics (every diagnostics_period_s) counts its own ends.
-    if not _spin_until(executor, probe.estimator_connected, DISCOVERY_TIMEOUT_S, children):
-        status = probe.estimator_status()
-        seen = ('no /diagnostics from it' if status is None else ', '.join(
-            f'{key} {status.get(key, "?")}' for key in diagnostics.MATCHED_KEYS))
-        raise DemoError(f'{prefix}the estimator has not matched its topics after '
-                        f'{DISCOVERY_TIMEOUT_S:g} s: {seen}')
-    _check_children(children)
-
-
-def _start_nodes(children: Dict[str, _Child], seed: int, env: Dict[str, str],
+def _start_nodes(children: Dict[str, Child], seed: int, env: Dict[str, str],
                  output_dir: Path) -> None:
     """Start the estimator and the simulator (holding its samples) into ``children``."""
     # The estimator first: its subscription exists before the simulator looks.
     # Seed 000 is one switch away from the defaults (the rail preset, the gate on).
-    children['estimator'] = _start('estimator', [
+    children['estimator'] = start('estimator', [
         '-p', 'preset:=train', '-p', 'initialization:=prior', '-p', 'gate_probability:=1.0',
         '-p', f'horizon_s:={HORIZON_S!r}'], env, output_dir)
-    children['simulator'] = _start('simulator', [
+    children['simulator'] = start('simulator', [
         '-p', f'seed:={seed}', '-p', f'rate_hz:={RATE_HZ!r}',
         '-p', f'max_samples:={SAMPLES}',
         # Hold the first sample until told how many subscribers to wait for.
         '-p', f'min_subscribers:={HOLD_SUBSCRIBERS}'], env, output_dir)
 
 
-def demo_environment(environ) -> Dict[str, str]:
-    """Return the children's environment: the user's domain if set, else one of this run."""
-    env = dict(environ)
-    if not env.get('ROS_DOMAIN_ID', '').strip():
-        # 1..100 keeps Fast DDS's port arithmetic valid; the pid spreads concurrent runs.
-        env['ROS_DOMAIN_ID'] = str(1 + os.getpid() % 100)
-        env.pop('ROS_STATIC_PEERS', None)
-    try:
-        domain_id = int(env['ROS_DOMAIN_ID'])
-    except ValueError:
-        domain_id = -1
-    # Fast DDS cannot map larger ids to ports, and exits the process if asked to.
-    if not 0 <= domain_id <= MAX_DOMAIN_ID:
-        raise DemoError(f'ROS_DOMAIN_ID must be an integer in [0, {MAX_DOMAIN_ID}], '
-                        f'got {env["ROS_DOMAIN_ID"]!r}')
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    env['PYTHONUNBUFFERED'] = '1'
-    return env
-
-
-def node_command(name: str) -> List[str]:
-    """Return the command starting node ``name``: the console script beside Python, or -m."""
-    script = Path(sys.executable).parent / name
-    if script.is_file() and os.access(script, os.X_OK):
-        return [str(script)]
-    return [sys.executable, '-m', f'kf_train.ros.{name}_node']
-
-
-def _start(name: str, ros_args: List[str], env: Dict[str, str], output_dir: Path) -> _Child:
-    """Start node ``name`` with its output in ``output_dir/<name>.log``."""
-    command = node_command(name) + ['--ros-args'] + ros_args
-    log_path = output_dir / f'{name}.log'
-    try:
-        with open(log_path, 'w') as log:
-            return _Child(subprocess.Popen(command, env=env, stdin=subprocess.DEVNULL,
-                                           stdout=log, stderr=subprocess.STDOUT), log_path)
-    except OSError as error:
-        raise DemoError(f'cannot start the {name} ({command[0]}): {error.strerror}') from None
-
-
-def _spin_until(executor, condition: Callable[[], bool], timeout_s: float,
-                children: Dict[str, _Child],
-                simulator_may_finish: bool = False) -> bool:
-    """Spin until ``condition()``; raise DemoError as soon as a node exits unexpectedly."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        _check_children(children, simulator_may_finish)
-        if time.monotonic() > deadline:
-            return False
-        executor.spin_once(timeout_sec=0.05)
-    return True
-
-
-def _check_children(children: Dict[str, _Child], simulator_may_finish: bool = False) -> None:
-    """Raise DemoError if a node has exited (the simulator may, once it is done)."""
-    for name, child in children.items():
-        code = child.process.poll()
-        if code is None or (code == 0 and name == 'simulator' and simulator_may_finish):
-            continue
-        raise DemoError(f'the {name} exited early with code {code}: {_last_line(child)}')
-
-
-def settings_from_parameters(values: Dict[str, object]) -> EstimatorSettings:
-    """Return the EstimatorSettings of an estimator node with these parameter values."""
-    fields = {field.name for field in dataclasses.fields(EstimatorSettings)}
-    settings = {}
-    for name, value in values.items():
-        if name in fields:
-            # Array parameters arrive as lists or array.array; the settings keep tuples.
-            is_array = isinstance(value, (list, tuple)) or hasattr(value, 'typecode')
-            settings[name] = tuple(float(v) for v in value) if is_array else value
-    return EstimatorSettings(**settings)
-
-
-def _estimator_settings(executor, probe: demo_nodes.Probe) -> EstimatorSettings:
-    """Ask the estimator node for its parameters; return the settings it runs with."""
-    names = sorted(field.name for field in dataclasses.fields(EstimatorSettings))
-    values = demo_nodes.fetch_parameters(executor, probe, 'estimator', names,
-                                         DISCOVERY_TIMEOUT_S)
-    if values is None:
-        raise DemoError(f'the estimator did not answer get_parameters within '
-                        f'{DISCOVERY_TIMEOUT_S:g} s')
-    # Parameters the node does not declare come back NOT_SET (None): defaults apply.
-    return settings_from_parameters({n: v for n, v in values.items() if v is not None})
-
-
 def _complete(probe: demo_nodes.Probe) -> bool:
     """Return whether every topic has delivered all samples."""
     return all(n >= SAMPLES for n in probe.counts().values())
-
-
-def _expect_exit(children: Dict[str, _Child], name: str, timeout_s: float) -> None:
-    """Wait for node ``name`` to exit; raise DemoError unless it exits 0 in time."""
-    try:
-        code = children[name].process.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        raise DemoError(f'the {name} did not exit within {timeout_s:g} s') from None
-    if code != 0:
-        raise DemoError(f'the {name} exited with code {code}: {_last_line(children[name])}')
-
-
-def _stop(children: Dict[str, _Child]) -> None:
-    """Stop every child still running: SIGINT, then SIGKILL after STOP_TIMEOUT_S."""
-    running = [child.process for child in children.values() if child.process.poll() is None]
-    for child in running:
-        child.send_signal(signal.SIGINT)
-    for child in running:
-        try:
-            child.wait(timeout=STOP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            child.kill()
-            child.wait()
-
-
-def _last_line(child: _Child) -> str:
-    """Return the last non-empty line a child logged, for a one-line error."""
-    try:
-        with open(child.log_path, errors='replace') as log:
-            lines = [line.strip() for line in log if line.strip()]
-    except OSError:
-        return '(no output)'
-    return lines[-1] if lines else '(no output)'
-
-
-def _progress(text: str) -> None:
-    """Print a progress line to stderr, keeping stdout for the report."""
-    print(f'kf-train demo: {text}', file=sys.stderr, flush=True)
-
-
-def _raise_on_sigterm():
-    """Turn SIGTERM into an exception so the children are stopped; return the old handler."""
-    def handler(signum, frame):
-        raise _Terminated()
-    try:
-        return signal.signal(signal.SIGTERM, handler)
-    except ValueError:  # not the main thread: leave signals alone
-        return None
 
 
 def build_series(probe: demo_nodes.Probe, seed: int, settings: EstimatorSettings) -> DemoSeries:
@@ -539,21 +370,20 @@ def _write_data(output_dir: Path, series: DemoSeries) -> None:
 
 def _write_figures(output_dir: Path, series: DemoSeries) -> None:
     """
-    Draw seed 000's figures with kf_train.cli.plotting, when that module is available.
+    Draw seed 000's figures with kf_train.plots, when matplotlib is available.
 
     The single call site of the plotting module. x_hist and P_hist hold the N samples
     (no prior row); P_hist is the offline core's full covariance, equal to the received
     variances on its diagonal.
     """
     try:
-        from kf_train.cli import plotting
-        seed000_figures = plotting.seed000_figures
+        from kf_train.plots import seed000_figures
     except (ImportError, AttributeError):
-        _progress('figures: not available')
+        progress('figures: not available')
         return
     paths = seed000_figures(str(output_dir), series.t_s, series.measured_m, series.truth_m,
                             series.x_hist, series.P_hist, series.dt_s)
-    _progress('figures: ' + ', '.join(os.path.basename(str(p)) for p in paths or ()))
+    progress('figures: ' + ', '.join(os.path.basename(str(p)) for p in paths or ()))
 
 
 if __name__ == '__main__':

@@ -17,7 +17,7 @@ constant-acceleration Kalman filter each tuned in hindsight on this very run
 (:func:`kf_train.sim.tuned_baselines`); checks that what crossed DDS equals the
 offline core (:class:`StreamEstimator` fed the received measurements) and the seeded
 offline run; and draws ``rail.png``
-(:mod:`kf_train.cli.rail_figure`). Outputs go to ``<output-dir>/rail``.
+(:mod:`kf_train.plots.rail_figure`). Outputs go to ``<output-dir>/rail``.
 """
 
 import dataclasses
@@ -27,7 +27,7 @@ from pathlib import Path
 import signal
 from typing import Dict, NamedTuple, Optional
 
-from kf_train.cli import demo as seed_demo
+from kf_train.cli import demo_processes as seed_demo
 from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
 from kf_train.ros import demo_nodes, diagnostics, messages
 from kf_train.sim import (
@@ -102,7 +102,7 @@ def run_rail_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
     rail = plan(seed)
     env = seed_demo.demo_environment(os.environ)
     domain_id = int(env['ROS_DOMAIN_ID'])
-    seed_demo._progress(
+    seed_demo.progress(
         f'rail: a {FAMILY} run of seed {seed}, {rail.samples / RATE_HZ:g} s at {RATE_HZ:g} Hz '
         f'played {REAL_TIME_FACTOR:g}x faster, the estimator with its defaults')
     series, settings = _run_nodes(
@@ -118,16 +118,16 @@ def run_rail_demo(seed: int, output_dir: Path, timeout_s: float) -> str:
 
 def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s: float):
     """Start both nodes, record the run, stop them; return (series, estimator settings)."""
-    children: Dict[str, seed_demo._Child] = {}
+    children: Dict[str, seed_demo.Child] = {}
     context = demo_nodes.Context()
     saved_range = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
     try:
         # No filter parameter: the defaults. Only the transport is set: reliable with a
         # deep queue, so that no sample is lost while the run is played faster.
-        children['estimator'] = seed_demo._start('estimator', [
+        children['estimator'] = seed_demo.start('estimator', [
             '-p', 'use_sim_time:=true', '-p', 'qos_reliability:=reliable',
             '-p', f'qos_depth:={QUEUE_DEPTH}'], env, output_dir)
-        children['simulator'] = seed_demo._start('simulator', [
+        children['simulator'] = seed_demo.start('simulator', [
             '-p', 'scenario:=rail', '-p', f'rail_family:={FAMILY}', '-p', f'seed:={rail.seed}',
             '-p', f'rate_hz:={RATE_HZ!r}', '-p', f'real_time_factor:={REAL_TIME_FACTOR!r}',
             '-p', 'publish_clock:=true', '-p', f'max_samples:={rail.samples}',
@@ -136,12 +136,12 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
             env['ROS_AUTOMATIC_DISCOVERY_RANGE']
         executor, probe = demo_nodes.start_probe(context, int(env['ROS_DOMAIN_ID']),
                                                  demo_nodes.RAIL_TOPICS, events=True)
-        if not seed_demo._spin_until(executor, lambda: _sees_nodes(probe),
-                                     seed_demo.DISCOVERY_TIMEOUT_S, children):
+        if not seed_demo.spin_until(executor, lambda: _sees_nodes(probe),
+                                    seed_demo.DISCOVERY_TIMEOUT_S, children):
             raise seed_demo.DemoError(
                 f'rail: discovery timed out after {seed_demo.DISCOVERY_TIMEOUT_S:g} s '
                 f'(see the logs in {output_dir})')
-        settings = seed_demo._estimator_settings(executor, probe)
+        settings = seed_demo.estimator_settings(executor, probe)
         has_regimes = bool(diagnostics.regime_names(StreamEstimator(settings)))
         seed_demo.wait_connected(executor, probe, children, 'rail: ')
         probe.subscribe_measurement()
@@ -150,10 +150,10 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
             max(2, probe.count_subscribers('measurement')), seed_demo.DISCOVERY_TIMEOUT_S)
         if problem is not None:
             raise seed_demo.DemoError(f'rail: cannot release the simulator: {problem}')
-        seed_demo._progress(f'rail: both nodes up; sampling for '
-                            f'{rail.samples / RATE_HZ / REAL_TIME_FACTOR:.1f} s')
-        if not seed_demo._spin_until(executor, lambda: _complete(probe, rail.samples, has_regimes),
-                                     timeout_s, children, simulator_may_finish=True):
+        seed_demo.progress(f'rail: both nodes up; sampling for '
+                           f'{rail.samples / RATE_HZ / REAL_TIME_FACTOR:.1f} s')
+        if not seed_demo.spin_until(executor, lambda: _complete(probe, rail.samples, has_regimes),
+                                    timeout_s, children, simulator_may_finish=True):
             counts = ', '.join(f'{topic} {n}' for topic, n in probe.counts().items())
             status = probe.estimator_status() or {}
             raise seed_demo.DemoError(
@@ -162,10 +162,10 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
                 f'and fused {status.get("fused", "?")}')
         children['estimator'].process.send_signal(signal.SIGINT)
         series = build_rail_series(probe, rail, settings)
-        seed_demo._expect_exit(children, 'simulator', seed_demo.EXIT_TIMEOUT_S)
-        seed_demo._expect_exit(children, 'estimator', seed_demo.EXIT_TIMEOUT_S)
+        seed_demo.expect_exit(children, 'simulator', seed_demo.EXIT_TIMEOUT_S)
+        seed_demo.expect_exit(children, 'estimator', seed_demo.EXIT_TIMEOUT_S)
     finally:
-        seed_demo._stop(children)
+        seed_demo.stop(children)
         context.try_shutdown()
         if saved_range is None:
             os.environ.pop('ROS_AUTOMATIC_DISCOVERY_RANGE', None)
@@ -318,13 +318,13 @@ def _score_line(label: str, result: Score) -> str:
 
 
 def _draw(output_dir: Path, rail: RailPlan, series: RailSeries) -> Optional[str]:
-    """Draw rail.png with kf_train.cli.rail_figure; return its path (None without it)."""
+    """Draw rail.png with kf_train.plots.rail_figure; return its path (None without it)."""
     try:
-        from kf_train.cli import rail_figure
-        path = rail_figure.rail_figure(
+        from kf_train.plots import rail_figure
+        path = rail_figure(
             str(output_dir / 'rail.png'), series, rail.run, rail.stop, RAIL_HORIZON_S)
     except (ImportError, RuntimeError) as error:
-        seed_demo._progress(f'rail: figure not drawn: {error}')
+        seed_demo.progress(f'rail: figure not drawn: {error}')
         return None
-    seed_demo._progress(f'rail: figure {path}')
+    seed_demo.progress(f'rail: figure {path}')
     return path

@@ -1,13 +1,13 @@
 """
 ``kf-train replay``: a preset's filter over a CSV or Parquet table (or a bag), offline.
 
-A rosbag2 INPUT goes to :mod:`kf_train.cli.bag_replay` (the estimator node's session).
+A rosbag2 INPUT goes to :mod:`kf_train.replay.bag` (the estimator node's session).
 
-The command streams (:mod:`kf_train.cli.replay_stream`: any size in bounded memory,
-CSV or Parquet) unless ``--engine memory`` asks for :func:`replay` below, which holds
-the whole table; ``--engine dask`` runs a fleet on Dask
-(:mod:`kf_train.cli.fleet_dask`). This module keeps the CSV reading, checking and
-column layout both share.
+The command streams (:mod:`kf_train.replay.stream`: any size in bounded memory,
+CSV or Parquet) unless ``--engine memory`` asks for
+:func:`kf_train.replay.memory.replay`, which holds the whole table; ``--engine dask``
+runs a fleet on Dask (:mod:`kf_train.replay.fleet_dask`). The table reading and
+writing they share is :mod:`kf_train.io.tables`.
 
 Input CSV: a header row, then one row per measurement. Columns (any order; other
 columns are ignored):
@@ -61,494 +61,24 @@ complete.
 """
 
 import argparse
-import csv
-import glob
-import io
-import os
+import math
 import sys
-import tempfile
-import time
-from typing import Dict, Iterable, Iterator, List, NamedTuple, Optional, Sequence, Tuple
-import warnings
+from typing import List, Optional
 
-from kf_train.batch import (
-    bank_time_steps, DEFAULT_BLOCK_ROWS, filter_table, group_rows, Groups, MAX_ABS_TIME_S,
-    output_header, RailSeriesFilter, resolve_horizon, RowError, rts_smooth, run_bank,
-    run_filter_series, run_linear_series, run_series, SeriesResult, SmootherResult,
-    TimeOrderError)
+from kf_train.batch import RailSeriesFilter
+from kf_train.cli.engine_options import add_engine_options, check_engine_options
 from kf_train.cli.filter_options import add_filter_options, filter_options
-from kf_train.cli.replay_engines import add_engine_options, check_engine_options, run_engine
 from kf_train.estimator import RAIL_FILTER_KINDS
-from kf_train.filters import Filter, FILTER_KINDS, make_filter, NS_PER_S, PARTICLE_KINDS
-from kf_train.io import csvio
-from kf_train.presets import (
-    available_presets, is_rail_preset_file, load_preset, load_preset_file, load_rail_preset,
-    Preset, RAIL_PRESET_NAME, RailPreset)
+from kf_train.filters import Filter, FILTER_KINDS, make_filter
+from kf_train.io import is_bag
+from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset
+from kf_train.replay import collector_frozen, load_any_preset, run_engine
 import numpy as np
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 1
 EXIT_USAGE = 2
-HEADER_LINE = 1
-ID_COLUMN = 'id'
-UTF8_BOM = b'\xef\xbb\xbf'
 
-
-class InputError(ValueError):
-    """Bad input: the message names the file, and the line and column when it can."""
-
-
-class Table(NamedTuple):
-    """The columns a preset needs, read from a CSV."""
-
-    columns: Dict[str, np.ndarray]
-    """Column name (as in the file) -> values (N,)."""
-    rows: int
-    lines: np.ndarray
-    """The file line of every row (1 is the header)."""
-    ids: Optional[np.ndarray] = None
-    """With an ``id`` column: each row's object, an index into ``id_labels`` (N,)."""
-    id_labels: Optional[List[str]] = None
-    """The distinct ids, sorted."""
-    missing: Optional[np.ndarray] = None
-    """With ``gaps``: the rows with an empty measurement cell (N,) (its value NaN), or None."""
-
-
-def required_columns(preset: Preset) -> List[Tuple[str, ...]]:
-    """Return the columns a preset needs: each entry lists the accepted names."""
-    return ([('t',)] + list(preset.measurement_columns())
-            + [(name,) for name in preset.control_columns() if preset.dim_u])
-
-
-# ---------------------------------------------------------------------------
-# Reading
-# ---------------------------------------------------------------------------
-
-def _header(path: str, line: str) -> List[str]:
-    """Return the header's column names (whitespace and surrounding quotes stripped)."""
-    names = []
-    for cell in next(csv.reader([line])):
-        name = cell.strip()
-        if len(name) >= 2 and name[0] == name[-1] == '"':
-            name = name[1:-1].strip()
-        names.append(name)
-    seen = set()
-    for name in names:
-        if name in seen and name:
-            raise InputError(f"{path} line {HEADER_LINE}: column '{name}' appears twice")
-        seen.add(name)
-    return names
-
-
-def _resolve(path: str, header: List[str], needed: Sequence[Tuple[str, ...]]) -> List[str]:
-    """Return, for every needed column, the name the file uses; raise if one is missing."""
-    resolved = []
-    for names in needed:
-        present = [name for name in names if name in header]
-        if not present:
-            also = f" (or '{names[1]}')" if len(names) > 1 else ''
-            needs = ', '.join(' or '.join(alternatives) for alternatives in needed)
-            raise InputError(
-                f"{path} line {HEADER_LINE}: missing column '{names[0]}'{also}; needed: "
-                f"{needs}; the header has: {', '.join(header)}")
-        if len(present) > 1:
-            raise InputError(f"{path} line {HEADER_LINE}: columns {' and '.join(present)} "
-                             'both give the same measurement; keep one')
-        resolved.append(present[0])
-    return resolved
-
-
-def _parse_fast(body: str, ncols: int) -> Optional[np.ndarray]:
-    """Return the numeric table (rows, ncols), or None when anything needs a closer look."""
-    if not body:
-        return np.empty((0, ncols))
-    if '"' in body or 'x' in body or 'X' in body:  # quotes, hex floats: the careful path
-        return None
-    rows = body.count('\n') + 1
-    raw = np.frombuffer(body.encode('utf-8'), dtype=np.uint8)
-    separators = np.flatnonzero((raw == ord(',')) | (raw == ord('\n')))
-    if separators.size != rows * ncols - 1:
-        return None
-    # Every row must have exactly ncols fields: newlines sit at every ncols-th separator.
-    newlines = np.flatnonzero(raw[separators] == ord('\n'))
-    if not np.array_equal(newlines, np.arange(ncols - 1, separators.size, ncols)):
-        return None
-    with warnings.catch_warnings():
-        warnings.simplefilter('error')
-        try:
-            values = np.fromstring(body.replace('\n', ','), sep=',')
-        except (ValueError, DeprecationWarning):
-            return None
-    if values.size != rows * ncols:
-        return None
-    return values.reshape(rows, ncols)
-
-
-def _cell(path: str, line: int, column: str, text: str, empty_ok: bool = False) -> float:
-    """Return a cell's value (NaN for an empty one if ``empty_ok``); raise InputError."""
-    cell = text.strip()
-    where = f"{path} line {line}, column '{column}'"
-    if not cell:
-        if empty_ok:
-            return float('nan')
-        raise InputError(f'{where}: empty cell, expected a number')
-    try:
-        if '_' in cell:
-            raise ValueError(cell)
-        value = float(cell)
-    except ValueError:
-        raise InputError(f'{where}: {text!r} is not a number') from None
-    if not np.isfinite(value):
-        raise InputError(f'{where}: {text!r} is not a finite number')
-    return value
-
-
-def _parse_careful(path: str, body: str, header: List[str], wanted: List[str],
-                   labelled: Optional[str] = None, empty_ok=frozenset()):
-    """
-    Return (values (rows, len(wanted)), lines (rows,), labels) parsing cell by cell.
-
-    ``labelled`` names a text column (the id) returned as stripped strings (rows,);
-    an empty cell of a column in ``empty_ok`` is NaN.
-    """
-    index = [header.index(name) for name in wanted]
-    label_index = None if labelled is None else header.index(labelled)
-    values, lines, labels = [], [], []
-    reader = csv.reader(io.StringIO(body))
-    for row in reader:
-        line = reader.line_num + HEADER_LINE
-        if not row or all(not cell.strip() for cell in row):
-            continue  # blank line
-        if len(row) != len(header):
-            raise InputError(f'{path} line {line}: {len(row)} fields, but the header has '
-                             f'{len(header)}')
-        values.append([_cell(path, line, name, row[i], name in empty_ok)
-                       for name, i in zip(wanted, index)])
-        lines.append(line)
-        if label_index is not None:
-            label = row[label_index].strip()
-            if not label:
-                raise InputError(f"{path} line {line}, column '{labelled}': empty id")
-            labels.append(label)
-    return (np.array(values, dtype=float).reshape(len(values), len(wanted)),
-            np.array(lines, dtype=np.int64), labels)
-
-
-def _read_bytes(path: str, text) -> bytes:
-    """Return the file's bytes (or ``text``'s), without a BOM, every line end a newline."""
-    if text is None:
-        try:
-            with open(path, 'rb') as stream:
-                data = stream.read()
-        except OSError as error:
-            raise InputError(f'{path}: cannot read: {error.strerror}') from None
-    else:
-        data = text.encode('utf-8') if isinstance(text, str) else bytes(text)
-    if data.startswith(UTF8_BOM):
-        data = data[len(UTF8_BOM):]
-    if b'\r' in data:
-        data = data.replace(b'\r\n', b'\n').replace(b'\r', b'\n')
-    return data
-
-
-def _decode(path: str, data: bytes) -> str:
-    """Return UTF-8 text; raise InputError otherwise."""
-    try:
-        return data.decode('utf-8')
-    except UnicodeDecodeError as error:
-        raise InputError(f'{path}: not UTF-8 text ({error.reason})') from None
-
-
-def read_table(path: str, needed: Sequence[Tuple[str, ...]], text=None,
-               ids: bool = False, gaps: Sequence[Tuple[str, ...]] = ()) -> Table:
-    """
-    Read the needed columns of a CSV (``text``, str or bytes, given, or read from ``path``).
-
-    With ``ids`` and an ``id`` column in the header, the table's ``ids`` and
-    ``id_labels`` say which object every row belongs to. The columns in ``gaps``
-    (entries of ``needed``: the measurements) may have empty cells: their value is NaN
-    and the table's ``missing`` flags the rows that have one ('nan' text is refused).
-
-    Plain files (decimal numbers, commas, newlines) are converted in bulk by
-    :mod:`kf_train.io.csvio`; anything else, and every error, goes through the csv
-    module cell by cell, so that a message can name the line and the column.
-    """
-    data = _read_bytes(path, text)
-    head, _, body = data.partition(b'\n')
-    head_text = _decode(path, head)
-    if not head_text.strip():
-        raise InputError(f'{path} line {HEADER_LINE}: expected a header row naming the '
-                         'columns, e.g. t,z_position')
-    header = _header(path, head_text)
-    wanted = _resolve(path, header, needed)
-    labelled = ID_COLUMN if ids and ID_COLUMN in header else None
-    body = body.rstrip(b'\n')
-    index = [header.index(name) for name in wanted]
-    fields = csvio.split_fields(body, len(header))
-    if fields is not None:
-        values = csvio.parse_numbers(body, fields.starts[:, index], fields.ends[:, index])
-        labels = None
-        if values is not None and labelled is not None:
-            i = header.index(labelled)
-            labels = csvio.parse_labels(body, fields.starts[:, i], fields.ends[:, i])
-        if values is not None and np.all(np.isfinite(values)) and (
-                labelled is None or labels is not None):
-            _decode(path, body)            # the other columns must be text too
-            lines = np.arange(values.shape[0], dtype=np.int64) + HEADER_LINE + 1
-            codes, names = labels if labels is not None else (None, None)
-            return Table(dict(zip(wanted, values.T)), values.shape[0], lines, codes, names)
-    body_text = _decode(path, body)
-    if labelled is None:
-        table = _parse_fast(body_text, len(header))
-        if table is not None:
-            values = table[:, index]
-            if np.all(np.isfinite(values)):
-                lines = np.arange(values.shape[0], dtype=np.int64) + HEADER_LINE + 1
-                return Table(dict(zip(wanted, values.T)), values.shape[0], lines)
-    # Something is off (or unusual): parse cell by cell to name the line and column.
-    empty_ok = frozenset(name for name, names in zip(wanted, needed) if names in gaps)
-    values, lines, labels = _parse_careful(path, body_text, header, wanted, labelled,
-                                           empty_ok)
-    codes = names = missing = None
-    if labelled is not None:
-        names, codes = np.unique(np.array(labels, dtype=str), return_inverse=True)
-        codes, names = codes.reshape(-1).astype(np.int64), [str(n) for n in names]
-    if empty_ok:
-        gap = np.isnan(values[:, [wanted.index(name) for name in sorted(empty_ok)]]).any(axis=1)
-        missing = gap if gap.any() else None
-    return Table(dict(zip(wanted, values.T)), values.shape[0], lines, codes, names, missing)
-
-
-def check_times(path: str, t: np.ndarray, lines: np.ndarray, t0_s: float) -> None:
-    """Raise InputError naming the line of the first time out of range or order."""
-    where = "{path} line {line}, column 't'"
-    big = np.flatnonzero(np.abs(t) > MAX_ABS_TIME_S)
-    if big.size:
-        k = int(big[0])
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f': {float(t[k])!r} s is out of range '
-                         f'(|t| <= {MAX_ABS_TIME_S:g} s)')
-    t_ns = np.rint(t * NS_PER_S).astype(np.int64)
-    t0_ns = int(round(t0_s * NS_PER_S))
-    if t.size and t_ns[0] < t0_ns:
-        raise InputError(where.format(path=path, line=lines[0])
-                         + f': {float(t[0])!r} is before the initial time t0 = {t0_s!r} s '
-                         '(set it with --t0)')
-    bad = np.flatnonzero(np.diff(t_ns) <= 0)
-    if bad.size:
-        k = int(bad[0]) + 1
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f": {float(t[k])!r} is not after the previous row's t = "
-                         f'{float(t[k - 1])!r} '
-                         '(t must increase)')
-
-
-def check_bank_times(path: str, t: np.ndarray, lines: np.ndarray, groups: Groups,
-                     labels: Sequence[str], t0_s: float) -> None:
-    """Raise InputError naming the line of the first time out of range or order per id."""
-    where = "{path} line {line}, column 't'"
-    big = np.flatnonzero(np.abs(t) > MAX_ABS_TIME_S)
-    if big.size:
-        k = int(big[0])
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f': {float(t[k])!r} s is out of range '
-                         f'(|t| <= {MAX_ABS_TIME_S:g} s)')
-    try:
-        bank_time_steps(t, groups, t0_s)
-    except TimeOrderError as error:
-        k, label = error.row, labels[groups.codes[error.row]]
-        if error.previous is None:
-            raise InputError(where.format(path=path, line=lines[k])
-                             + f': {float(t[k])!r} is before the initial time t0 = '
-                             f"{t0_s!r} s of id '{label}' (set it with --t0)") from None
-        j = error.previous
-        raise InputError(where.format(path=path, line=lines[k])
-                         + f": {float(t[k])!r} is not after the previous row's t = "
-                         f"{float(t[j])!r} of id '{label}' (line {lines[j]}); t must "
-                         'increase per id') from None
-
-
-# ---------------------------------------------------------------------------
-# Running and writing
-# ---------------------------------------------------------------------------
-
-def run_preset(preset: Preset, t, z, u=None, *, t0_s: float = 0.0, horizon_s=None,
-               fast: bool = True, filt: Optional[Filter] = None, ids=None,
-               groups: Optional[Groups] = None) -> SeriesResult:
-    """
-    Run a preset over arrays: the vectorised path for linear presets, else the loop.
-
-    With ``ids`` (one label per row; or their ``groups``) every id is an independent
-    object: see :func:`kf_train.batch.bank.run_bank`.
-    """
-    if ids is not None or groups is not None:
-        return run_bank(preset, t, z, u, ids, t0_s=t0_s, horizon_s=horizon_s, fast=fast,
-                        filt=filt, groups=groups)
-    if filt is not None:  # --filter: any filter of the family, row by row
-        return run_filter_series(filt, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
-    if fast and preset.linear:
-        return run_linear_series(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
-    return run_series(preset, t, z, u, t0_s=t0_s, horizon_s=horizon_s)
-
-
-def smooth_bank(result: SeriesResult, groups: Groups) -> SmootherResult:
-    """Return the RTS smoothing of every object of a bank on its own rows."""
-    N, n = result.x.shape
-    x, P = result.x.copy(), result.P.copy()
-    gains = np.zeros((N, n, n))    # row k: the gain into k from the object's next row
-    for k in np.flatnonzero(groups.counts > 1):        # one row: already smoothed
-        rows = groups.rows(k)
-        smoothed = rts_smooth(result.x[rows], result.P[rows], result.x_prior[rows],
-                              result.P_prior[rows], result.F[rows])
-        x[rows], P[rows] = smoothed.x, smoothed.P
-        gains[rows[:-1]] = smoothed.gain
-    return SmootherResult(x, P, gains)
-
-
-def output_columns(preset: Preset, result: SeriesResult,
-                   smoothed: Optional[SmootherResult] = None
-                   ) -> Tuple[List[str], List[np.ndarray]]:
-    """Return the output header and columns for a filtered (and smoothed) series."""
-    names = preset.state_names
-    header, columns = ['t'], [result.t_s]
-
-    def add(prefix: str, x: np.ndarray, P: np.ndarray) -> None:
-        for i, name in enumerate(names):
-            header.append(prefix + name)
-            columns.append(x[:, i])
-        for i, name in enumerate(names):
-            header.append('var_' + prefix + name)
-            columns.append(P[:, i, i])
-
-    add('', result.x, result.P)
-    if result.predicted_x is not None:
-        add('predicted_', result.predicted_x, result.predicted_P)
-    if smoothed is not None:
-        add('smoothed_', smoothed.x, smoothed.P)
-    return header, columns
-
-
-def format_csv(header: Sequence[str], columns: Sequence[np.ndarray],
-               rows_per_chunk: int = csvio.BLOCK_ROWS, labels: Optional[Sequence[str]] = None,
-               codes: Optional[np.ndarray] = None) -> Iterator[bytes]:
-    """
-    Yield the CSV text in chunks: the header, then rows of shortest round-trip numbers.
-
-    With ``labels`` and ``codes``, every row starts with the text ``labels[codes[row]]``
-    (the id column, first in ``header``).
-    """
-    yield (','.join(header) + '\n').encode('utf-8')
-    N = len(columns[0]) if columns else 0
-    prefix = None if labels is None else (csvio.format_labels(labels), codes)
-    for start in range(0, N, rows_per_chunk):
-        yield csvio.format_rows(columns, start, min(start + rows_per_chunk, N), prefix)
-
-
-def check_file_target(path: str) -> None:
-    """Raise a one-line ValueError unless a file can be written at ``path`` (write_atomic)."""
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise ValueError(f'cannot write {path}: directory {directory} does not exist')
-    if not os.access(directory, os.W_OK | os.X_OK):
-        raise ValueError(f'cannot write {path}: directory {directory} is not writable')
-    if os.path.isdir(path):
-        raise ValueError(f'cannot write {path}: it is a directory')
-
-
-def write_atomic(path: str, chunks: Iterable) -> None:
-    """Write text chunks (bytes or str) to ``path`` via a temporary file; no partial file."""
-    if path == '-':
-        for chunk in chunks:
-            sys.stdout.write(chunk.decode('utf-8') if isinstance(chunk, bytes) else chunk)
-        sys.stdout.flush()
-        return
-    directory = os.path.dirname(os.path.abspath(path))
-    handle, temporary = tempfile.mkstemp(dir=directory, prefix='.' + os.path.basename(path),
-                                         suffix='.tmp')
-    try:
-        with os.fdopen(handle, 'wb') as stream:
-            for chunk in chunks:
-                stream.write(chunk.encode('utf-8') if isinstance(chunk, str) else chunk)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)  # as an ordinary new file, not mkstemp's 0600
-        os.replace(temporary, path)
-    except BaseException:
-        try:
-            os.unlink(temporary)
-        except OSError:
-            pass
-        raise
-
-
-class ReplaySummary(NamedTuple):
-    """What a replay did."""
-
-    rows: int
-    columns: List[str]
-    seconds: float
-
-
-def replay(preset: Preset, input_path: str, output_path: str, *, horizon_s=None,
-           smooth: bool = False, t0_s: float = 0.0, fast: bool = True,
-           filt: Optional[Filter] = None, block_rows: int = DEFAULT_BLOCK_ROWS,
-           spill_dir: Optional[str] = None) -> ReplaySummary:
-    """
-    Replay ``input_path`` through ``preset`` into ``output_path``; raise InputError.
-
-    The table is read whole, then filtered in blocks of ``block_rows`` exactly as the
-    streamed replay filters it (:func:`kf_train.batch.stream.filter_table`), so both
-    write the same bytes for any input size. ``fast`` False filters the whole table as
-    one block (a complete table only), whatever ``block_rows`` says.
-    """
-    if smooth and filt is not None and filt.kind in PARTICLE_KINDS:
-        raise ValueError('--smooth needs a Gaussian filter (kf, ekf or ukf): the RTS '
-                         'smoother does not apply to particles')
-    start = time.perf_counter()
-    text = None
-    if input_path == '-':
-        text = sys.stdin.buffer.read() if hasattr(sys.stdin, 'buffer') else sys.stdin.read()
-    needed = required_columns(preset)
-    table = read_table(input_path, needed, text, ids=True,
-                       gaps=needed[1:1 + preset.dim_z])
-    t = table.columns['t']
-    if table.ids is None:
-        check_times(input_path, t, table.lines, t0_s)
-    else:
-        check_bank_times(input_path, t, table.lines, group_rows(table.ids), table.id_labels,
-                         t0_s)
-    wanted = _resolve(input_path, list(table.columns), needed)
-    z = np.column_stack([table.columns[name] for name in wanted[1:1 + preset.dim_z]]
-                        ) if table.rows else np.empty((0, preset.dim_z))
-    u = None
-    if preset.dim_u:
-        u = np.column_stack([table.columns[name] for name in wanted[1 + preset.dim_z:]]) \
-            if table.rows else np.empty((0, preset.dim_u))
-    if not fast and table.missing is None:
-        block_rows = max(table.rows, 1)
-    try:
-        columns = filter_table(preset, t, z, u, table.ids, horizon_s=horizon_s, t0_s=t0_s,
-                               filt=filt, smooth=smooth, block_rows=block_rows,
-                               missing=table.missing, spill_dir=spill_dir)
-    except RowError as error:
-        raise InputError(f'{input_path} line {table.lines[error.row]}: {error.reason}'
-                         ) from None
-    except ValueError as error:
-        raise InputError(f'{input_path}: {error}') from None
-    header = output_header(preset, resolve_horizon(preset, horizon_s), smooth,
-                           table.missing is not None)
-    if table.ids is None:
-        write_atomic(output_path, format_csv(header, columns))
-    else:
-        header = [ID_COLUMN] + header
-        write_atomic(output_path, format_csv(header, columns, labels=table.id_labels,
-                                             codes=table.ids))
-    return ReplaySummary(table.rows, header, time.perf_counter() - start)
-
-
-# ---------------------------------------------------------------------------
-# Command line
-# ---------------------------------------------------------------------------
 
 def _parser() -> argparse.ArgumentParser:
     """Return the argument parser."""
@@ -643,7 +173,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     try:
         preset = load_any_preset(args.preset, args.config)
         filt = _make_filter(preset, args, options)
-        summary = run_engine(args, preset, filt)
+        summary = run_engine(
+            args.engine, preset, args.input, args.output, filt, horizon_s=args.horizon,
+            smooth=args.smooth, t0_s=args.t0, block_rows=args.block_rows, codec=args.codec,
+            spill_dir=args.spill_dir, workers=args.workers, scheduler=args.scheduler)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -651,15 +184,6 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'kf-train replay: {summary.rows} rows with preset {preset.name} -> '
               f'{args.output} ({summary.seconds:.3f} s)', file=sys.stderr)
     return EXIT_OK
-
-
-def load_any_preset(name: Optional[str], path: Optional[str]):
-    """Return a shipped preset by name or a preset file; rail ones as a RailPreset."""
-    if name == RAIL_PRESET_NAME:
-        return load_rail_preset()
-    if name:
-        return load_preset(name)
-    return load_rail_preset(path) if is_rail_preset_file(path) else load_preset_file(path)
 
 
 def _make_filter(preset, args, options) -> Optional[Filter]:
@@ -675,21 +199,6 @@ def _make_filter(preset, args, options) -> Optional[Filter]:
     return RailSeriesFilter(preset)
 
 
-def is_bag(path: str) -> bool:
-    """Return whether ``path`` names a bag (a .mcap or .db3 file, a directory), not a table."""
-    if path.endswith(('.mcap', '.db3')):
-        return True
-    # A directory holding Parquet files is a dataset for the columnar path, not a bag.
-    return os.path.isdir(path) and not glob.glob(os.path.join(path, '**', '*.parquet'),
-                                                 recursive=True)
-
-
-def bag_replay_module():
-    """Return kf_train.cli.bag_replay (imported when used: it needs rosbags)."""
-    from kf_train.cli import bag_replay
-    return bag_replay
-
-
 def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """Run ``kf-train replay BAG``: the node's parameters, not a preset's options."""
     if args.output is None:
@@ -700,7 +209,27 @@ def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                          f'(-p preset:=NAME, -p horizon_s:=S, -p filter:=KIND)')
     if args.smooth:
         parser.error('--smooth applies to a CSV input only')
-    return bag_replay_module().bag_main(args)
+    return _run_bag(args)
+
+
+def _run_bag(args: argparse.Namespace) -> int:
+    """Run the bag replay for parsed ``kf-train replay`` arguments; return the exit code."""
+    from kf_train.replay import bag        # needs rosbags: imported when used
+    try:
+        config = bag.load_config(args.params_file or [], args.parameter or [])
+        with collector_frozen():
+            summary = bag.replay_bag(args.input, args.output, config, args.topic,
+                                     args.control_topic)
+    except ValueError as error:
+        print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
+        return 1
+    rate = summary.measurements / summary.seconds if summary.seconds > 0 else math.inf
+    print(f'kf-train replay: {summary.measurements} measurements on '
+          f'{summary.measurement_topic}, {summary.controls} controls, '
+          f'{summary.rejected} rejected -> {summary.estimates} estimates in '
+          f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
+          file=sys.stderr)
+    return 0
 
 
 if __name__ == '__main__':

@@ -51,8 +51,8 @@ import sys
 import time
 from typing import Iterator, List, NamedTuple, Optional
 
-from kf_train.cli.replay import check_file_target, write_atomic
 from kf_train.filters import NS_PER_S
+from kf_train.io import check_output_path, write_atomic
 from kf_train.ros import param_spec, simulator_params
 from kf_train.sim import ACCELERATION_SCENARIOS, CONTROL_NAMES, FaultInjector, make_stream
 
@@ -168,7 +168,7 @@ def _csv_line(row: list, position_m: Optional[float]) -> str:
 
 def write_csv(config, samples: int, path: str, start_ns: int) -> dict:
     """Write the run as a CSV at ``path`` (atomically); return the message counts."""
-    check_file_target(path)
+    check_output_path(path)
     counts = {'measurement': 0, 'ground_truth': 0, 'control': 0, 'ground_truth_accel': 0}
     try:
         write_atomic(path, _csv_chunks(config, samples, start_ns, counts))

@@ -1,5 +1,10 @@
 """
-Floor 3, input and output: CSV codecs (csvio; polars), Parquet and bags.
+Floor 3, input and output: CSV codecs (csvio; polars), tables, Parquet and bags.
+
+:mod:`~kf_train.io.tables` reads and writes the replay's CSV tables (an
+:class:`InputError` names the line and column), :mod:`~kf_train.io.table_output` the
+streamed outputs (CSV, Parquet file or dataset) and :mod:`~kf_train.io.paths` says
+what an input path names, checks an output path and writes a file atomically.
 
 The bag modules (``bagio``, ``bagio_output``, ``bagio_simulation``) need ``rosbags``
 (the extra ``[bag]``): they are imported when used (``from kf_train.io import bagio``),
@@ -15,14 +20,24 @@ from kf_train.io import columnar, csvio
 from kf_train.io.csvio import (
     BLOCK_FIELDS, BLOCK_ROWS, Fields, format_labels, format_rows, format_values, parse_labels,
     parse_numbers, parse_rows, split_fields)
+from kf_train.io.paths import check_output_path, is_bag, write_atomic
+from kf_train.io.table_output import in_background, open_output, Output
+from kf_train.io.tables import (
+    check_time_range, check_times, decode_text, format_csv, HEADER_LINE, header_names,
+    ID_COLUMN, InputError, read_table, required_columns, resolve_columns, Table,
+    time_order_error, UTF8_BOM)
 
 __all__ = [
-    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'columnar',
-    'csvio', 'Fields', 'format_labels', 'format_rows', 'format_values', 'parse_labels',
-    'parse_numbers', 'parse_rows', 'split_fields',
+    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS',
+    'check_output_path', 'check_time_range', 'check_times', 'columnar', 'csvio', 'decode_text',
+    'Fields', 'format_csv', 'format_labels', 'format_rows', 'format_values', 'HEADER_LINE',
+    'header_names', 'ID_COLUMN', 'in_background', 'InputError', 'is_bag', 'open_output',
+    'Output', 'parse_labels', 'parse_numbers', 'parse_rows', 'read_table', 'required_columns',
+    'resolve_columns', 'split_fields', 'Table', 'time_order_error', 'UTF8_BOM', 'write_atomic',
 ]
 
-_LAZY = ('bagio', 'bagio_output', 'bagio_simulation')
+# bagio_mcap and bagio_types, which the bag modules use, import rosbags too.
+_LAZY = ('bagio', 'bagio_mcap', 'bagio_output', 'bagio_simulation', 'bagio_types')
 
 
 def __getattr__(name: str):

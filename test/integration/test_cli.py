@@ -5,7 +5,7 @@ import subprocess
 import sys
 
 from kf_train import cli
-from kf_train.cli import demo
+from kf_train.cli import demo, demo_processes
 from kf_train.estimator import EstimatorSettings, NS_PER_S, StreamEstimator
 from kf_train.ros import messages
 from kf_train.sim import TrainSimulation
@@ -85,11 +85,11 @@ def test_demo_environment_keeps_a_user_domain_and_picks_one_otherwise():
 
 def test_node_command_falls_back_to_python_m(monkeypatch, tmp_path, domain_id):
     """Without console scripts beside Python the nodes run as ``python -m``, and that works."""
-    assert demo.node_command('simulator') == [os.path.join(VENV_BIN, 'simulator')]
+    assert demo_processes.node_command('simulator') == [os.path.join(VENV_BIN, 'simulator')]
     with monkeypatch.context() as patch:
         patch.setattr(sys, 'executable', str(tmp_path / 'python3'))
-        assert demo.node_command('estimator') == [str(tmp_path / 'python3'), '-m',
-                                                  'kf_train.ros.estimator_node']
+        assert demo_processes.node_command('estimator') == [
+            str(tmp_path / 'python3'), '-m', 'kf_train.ros.estimator_node']
     command = [sys.executable, '-m', 'kf_train.ros.simulator_node', '--ros-args', '-p',
                'max_samples:=-1']
     result = subprocess.run(command, capture_output=True, text=True, timeout=60,

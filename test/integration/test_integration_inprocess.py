@@ -10,7 +10,7 @@ import os
 import statistics
 
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from kf_train.cli.demo import settings_from_parameters
+from kf_train.cli.demo_processes import settings_from_parameters
 from kf_train.estimator import EstimatorSettings, NS_PER_S, SEED_SWITCH, StreamEstimator
 from kf_train.ros import messages
 from kf_train.ros.demo_nodes import Probe

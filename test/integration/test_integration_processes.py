@@ -290,7 +290,7 @@ def test_demo_end_to_end(spawn, tmp_path):
     assert float(re.search(r'simulation: max \|difference\| = (\S+)', report)[1]) == 0.0
     assert (output_dir / 'report.txt').read_text() + '\n' == report
     assert 'Traceback' not in demo.stderr()
-    assert 'figures: ' in demo.stderr()  # drawn, or 'not available' without kf_train.cli.plotting
+    assert 'figures: ' in demo.stderr()  # drawn, or 'not available' without kf_train.plots
     # The rail run: the defaults against tuned KFs, DDS equal to the offline core.
     for key in ('a rail run over DDS', 'estimator defaults, over DDS', 'constant-velocity KF',
                 'constant-acceleration KF', 'best tuned KF', 'figure: '):

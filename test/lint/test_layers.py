@@ -2,16 +2,22 @@
 The package's floors (README, "The floors"), checked on the source with ast.
 
 1. ``filters``  2. ``presets``  3. ``estimator``, ``batch``, ``sim``, ``io``  4. ``ros``
-5. ``cli``: a module imports only from its own package or from a lower floor; the four
-packages of floor 3 do not import each other. ``core`` is the old API's re-export: it
-may import floors 1-3, and nothing in kf_train imports it.
-Only ``ros`` imports rclpy or message packages; only ``cli`` imports argparse,
-matplotlib, scipy (the optional extra of ``kf-train tune``) or subprocess
-(``benchmarks/`` is outside the package). Packages talk
-through their ``__init__``: an import from another package names the package itself
-(``from kf_train.filters import X``), and X is public (no leading underscore) and in
-that package's ``__all__``. The reference libraries (filterpy, pykalman, simdkalman)
-are oracles of the tests and the benchmark only: kf_train never imports them.
+5. ``replay``, ``tune``, ``evaluate``  6. ``plots``  7. ``cli``: a module imports only
+from its own package or from a lower floor; the packages of one floor do not import
+each other. ``core`` is the old API's re-export: it may import floors 1-3, and nothing
+in kf_train imports it.
+
+Libraries: only ``ros`` imports rclpy or message packages; only ``cli`` imports
+argparse; only a package that starts processes (``cli``) imports subprocess. An
+optional library (scipy, matplotlib, polars, dask, rosbags, tqdm, numba) is imported
+only by the package(s) that own its job (:data:`OPTIONAL`), and lazily: inside a
+function, or at the top of a module that its package's ``__init__`` loads on first
+use (listed in its ``_LAZY``, PEP 562). ``benchmarks/`` is outside the package.
+Packages talk through their ``__init__``: an import from another package names the
+package itself (``from kf_train.filters import X``), and X is public (no leading
+underscore) and in that package's ``__all__``. The reference libraries (filterpy,
+pykalman, simdkalman) are oracles of the tests and the benchmark only: kf_train never
+imports them.
 """
 
 import ast
@@ -25,11 +31,16 @@ pytestmark = pytest.mark.linter
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PACKAGE_DIR = os.path.join(REPO, 'kf_train')
 FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
-          'ros': 4, 'cli': 5}
+          'ros': 4, 'replay': 5, 'tune': 5, 'evaluate': 5, 'plots': 6, 'cli': 7}
 COMPATIBILITY = 'core'
 ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
             'rcl_interfaces')
-CLI_ONLY = ('argparse', 'matplotlib', 'scipy', 'subprocess')
+# Standard library modules only some packages may import: the package(s) allowed.
+RESTRICTED = {'argparse': ('cli',), 'subprocess': ('cli',)}
+# Optional libraries (extras): the package(s) owning their job; imported lazily.
+OPTIONAL = {'scipy': ('tune',), 'matplotlib': ('plots',), 'polars': ('io',),
+            'dask': ('replay',), 'rosbags': ('io',), 'tqdm': ('replay',),
+            'numba': ('filters', 'batch')}
 ORACLES = ('filterpy', 'pykalman', 'simdkalman')
 
 
@@ -39,14 +50,27 @@ def _is_ros(module: str) -> bool:
     return top in ROS_ONLY or top.endswith(('_msgs', '_srvs', '_interfaces'))
 
 
-def _imports(tree: ast.AST):
-    """Yield (module, names or None, line) of every import, nested ones included."""
-    for node in ast.walk(tree):
+def _imports(tree: ast.AST, in_function: bool = False):
+    """Yield (module, names or None, line, in a function) of every import, nested ones too."""
+    for node in ast.iter_child_nodes(tree):
         if isinstance(node, ast.Import):
             for alias in node.names:
-                yield alias.name, None, node.lineno
+                yield alias.name, None, node.lineno, in_function
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            yield node.module, [alias.name for alias in node.names], node.lineno
+            yield node.module, [alias.name for alias in node.names], node.lineno, in_function
+        inside = in_function or isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef,
+                                                  ast.Lambda))
+        yield from _imports(node, inside)
+
+
+def lazy_modules(package_init_source: str) -> List[str]:
+    """Return the modules a package's ``__init__`` loads on first use (its ``_LAZY``)."""
+    for node in ast.parse(package_init_source).body:
+        if isinstance(node, ast.Assign) and any(
+                isinstance(target, ast.Name) and target.id == '_LAZY'
+                for target in node.targets):
+            return list(ast.literal_eval(node.value))
+    return []
 
 
 def exported_names(package_init_source: str) -> Optional[List[str]]:
@@ -59,22 +83,40 @@ def exported_names(package_init_source: str) -> Optional[List[str]]:
     return None
 
 
+def _library_rules(package: Optional[str], top: str, in_function: bool,
+                   lazy_module: bool) -> List[str]:
+    """Return the library rules an import of ``top`` breaks (messages without the place)."""
+    if top in RESTRICTED and package not in RESTRICTED[top]:
+        owners = ' and '.join(f'kf_train.{owner}' for owner in RESTRICTED[top])
+        return [f'only {owners} imports {top}']
+    if top not in OPTIONAL:
+        return []
+    if package not in OPTIONAL[top]:
+        owners = ' and '.join(f'kf_train.{owner}' for owner in OPTIONAL[top])
+        return [f'{top} is optional: only {owners} (its job) imports it']
+    if not in_function and not lazy_module:
+        return [f'{top} is optional: import it inside the function that needs it (or in '
+                "a module the package's __init__ lists in _LAZY)"]
+    return []
+
+
 def violations(package: Optional[str], source: str, exports: Dict[str, List[str]],
-               where: str = '<source>') -> List[str]:
+               where: str = '<source>', lazy_module: bool = False) -> List[str]:
     """
     Return every rule that ``source``, a module of kf_train/``package``, breaks.
 
     ``package`` is None for a module directly in kf_train/; ``exports`` maps each
-    package to its ``__all__``.
+    package to its ``__all__``; ``lazy_module``: the package's ``__init__`` loads this
+    module on first use (its ``_LAZY``), so its top-level imports are lazy too.
     """
     found = []
-    for module, names, line in _imports(ast.parse(source)):
+    for module, names, line, in_function in _imports(ast.parse(source)):
         at = f'{where}:{line}: {module}'
         top = module.split('.')[0]
         if _is_ros(module) and package != 'ros':
             found.append(f'{at}: only kf_train.ros imports rclpy and message packages')
-        if top in CLI_ONLY and package != 'cli':
-            found.append(f'{at}: only kf_train.cli imports {top}')
+        found += [f'{at}: {rule}' for rule in _library_rules(package, top, in_function,
+                                                             lazy_module)]
         if top in ORACLES:
             found.append(f'{at}: {top} is a test and benchmark oracle, not a dependency')
         parts = module.split('.')
@@ -106,15 +148,19 @@ def violations(package: Optional[str], source: str, exports: Dict[str, List[str]
 
 
 def _package_sources():
-    """Yield (package or None, path, source) of every module of kf_train."""
+    """Yield (package or None, path, source, lazily loaded) of every module of kf_train."""
     for directory, _, files in sorted(os.walk(PACKAGE_DIR)):
         relative = os.path.relpath(directory, PACKAGE_DIR)
         package = None if relative == '.' else relative.split(os.sep)[0]
+        lazy = []
+        if package is not None and relative == package:
+            with open(os.path.join(directory, '__init__.py'), encoding='utf-8') as stream:
+                lazy = lazy_modules(stream.read())
         for name in sorted(files):
             if name.endswith('.py'):
                 path = os.path.join(directory, name)
                 with open(path, encoding='utf-8') as stream:
-                    yield package, path, stream.read()
+                    yield package, path, stream.read(), name[:-3] in lazy
 
 
 def _exports() -> Dict[str, List[str]]:
@@ -144,8 +190,8 @@ def test_every_module_keeps_to_its_floor():
     """No import in kf_train breaks a rule of the floors."""
     exports = _exports()
     found = []
-    for package, path, source in _package_sources():
-        found += violations(package, source, exports, os.path.relpath(path, PACKAGE_DIR))
+    for package, path, source, lazy in _package_sources():
+        found += violations(package, source, exports, os.path.relpath(path, PACKAGE_DIR), lazy)
     assert not found, '\n'.join(found)
 
 
@@ -161,7 +207,8 @@ def test_every_exported_name_exists():
 
 
 EXPORTS = {'filters': ['predict', 'kalman'], 'presets': ['load_preset'],
-           'estimator': ['StreamEstimator'], 'sim': ['TrainSimulation']}
+           'estimator': ['StreamEstimator'], 'sim': ['TrainSimulation'], 'tune': ['fit'],
+           'replay': ['run'], 'cli': ['main']}
 
 
 @pytest.mark.parametrize('package, source, rule', [
@@ -174,9 +221,25 @@ EXPORTS = {'filters': ['predict', 'kalman'], 'presets': ['load_preset'],
     ('sim', 'def f():\n    import rclpy\n', 'only kf_train.ros imports rclpy'),
     ('cli', 'from nav_msgs.msg import Odometry\n', 'only kf_train.ros imports rclpy'),
     ('ros', 'import argparse\n', 'only kf_train.cli imports argparse'),
-    ('filters', 'from matplotlib.figure import Figure\n', 'only kf_train.cli imports'),
+    ('tune', 'def f():\n    import argparse\n', 'only kf_train.cli imports argparse'),
     ('batch', 'import subprocess\n', 'only kf_train.cli imports subprocess'),
-    ('batch', 'def f():\n    from scipy import optimize\n', 'only kf_train.cli imports scipy'),
+    ('filters', 'def f():\n    from matplotlib.figure import Figure\n',
+     'matplotlib is optional: only kf_train.plots'),
+    ('batch', 'def f():\n    from scipy import optimize\n',
+     'scipy is optional: only kf_train.tune'),
+    ('replay', 'def f():\n    import polars\n', 'polars is optional: only kf_train.io'),
+    ('cli', 'def f():\n    import tqdm\n', 'tqdm is optional: only kf_train.replay'),
+    ('tune', 'def f():\n    from rosbags.rosbag2 import Reader\n',
+     'rosbags is optional: only kf_train.io'),
+    ('evaluate', 'def f():\n    import dask.dataframe\n', 'dask is optional'),
+    ('plots', 'def f():\n    import numba\n', 'numba is optional'),
+    ('plots', 'from matplotlib.figure import Figure\n', 'import it inside the function'),
+    ('tune', 'import scipy.optimize\n', 'import it inside the function'),
+    ('tune', 'class A:\n    from scipy import optimize\n', 'import it inside the function'),
+    ('io', 'try:\n    import polars\nexcept ImportError:\n    pass\n',
+     'import it inside the function'),
+    ('replay', 'from kf_train.tune import fit\n', 'imports point down'),
+    ('plots', 'from kf_train.cli import main\n', 'imports point down'),
     ('batch', 'import filterpy.kalman\n', 'oracle'),
     ('cli', 'from kf_train.core import TrainEstimator\n', 'old API'),
     (None, 'from kf_train.estimator import StreamEstimator\n', 'imports point down'),
@@ -192,7 +255,21 @@ def test_the_checker_finds_each_kind_of_violation(package, source, rule):
     ('ros', 'import rclpy\nfrom kf_train.estimator import StreamEstimator\n'),
     ('estimator', 'from kf_train.estimator.contract import Rejected\n'),
     ('core', 'from kf_train.sim import TrainSimulation\n'),
+    ('tune', 'def f():\n    from scipy import optimize\n'),
+    ('plots', 'def f():\n    from matplotlib.figure import Figure\n'),
+    ('io', 'def f():\n    import polars\n'),
+    ('replay', 'def f():\n    import dask.dataframe as dd\n    from tqdm import tqdm\n'),
 ])
 def test_the_checker_passes_what_the_rules_allow(package, source):
     """Downward package imports, the own package's modules and allowed libraries pass."""
     assert violations(package, source, EXPORTS) == []
+
+
+def test_a_lazily_loaded_module_may_import_its_library_at_the_top():
+    """A module the package's __init__ lists in _LAZY imports its library when loaded."""
+    source = 'from rosbags.rosbag2 import Reader\n'
+    assert violations('io', source, EXPORTS, lazy_module=True) == []
+    assert violations('io', source, EXPORTS)
+    init = "_LAZY = ('bagio', 'bagio_output')\n"
+    assert lazy_modules(init) == ['bagio', 'bagio_output']
+    assert lazy_modules('__all__ = []\n') == []

@@ -4,9 +4,10 @@ import math
 
 from kf_train import cli
 from kf_train.batch import run_series
-from kf_train.cli.compare import (
-    anees_bounds, comparison_figure, derived_seed, main, nees, run_comparison)
+from kf_train.cli.compare import main
+from kf_train.evaluate import anees_bounds, derived_seed, nees, run_comparison
 from kf_train.filters import FilterOptions, psd_factor
+from kf_train.plots import comparison_figure
 from kf_train.presets import load_preset
 from kf_train.sim import scenario_for_preset
 import numpy as np

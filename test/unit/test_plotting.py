@@ -1,14 +1,14 @@
-"""Tests of kf_train.cli.plotting: the figures are built right and written as real PNGs."""
+"""Tests of kf_train.plots (kf-train plot): the figures are built right and written as PNGs."""
 
 import os
 import subprocess
 import sys
 
 from kf_train.batch import run_series
-from kf_train.cli.plotting import (
-    build_seed000_figures, main, measured_states, preset_figure, scenario_figures,
-    seed000_figures)
+from kf_train.cli.plotting import main
 from kf_train.cli.replay import main as replay_main
+from kf_train.plots import (
+    build_seed000_figures, measured_states, preset_figure, scenario_figures, seed000_figures)
 from kf_train.presets import load_preset, PRESET_NAMES
 from kf_train.sim import baselines, train_scenario
 from matplotlib import image
@@ -150,8 +150,8 @@ def test_plot_a_replay_output(tmp_path, capsys):
 
 def test_plotting_never_imports_pyplot():
     """The figures are drawn on an Agg canvas without pyplot (no display, no globals)."""
-    code = ('import sys; from kf_train.cli import plotting; '
-            'plotting.new_figure(); '
+    code = ('import sys; from kf_train import plots; '
+            'plots.new_figure(); '
             "assert 'matplotlib.pyplot' not in sys.modules, 'pyplot imported'")
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           timeout=120, env=dict(os.environ, MPLBACKEND='TkAgg'))

@@ -13,7 +13,8 @@ import textwrap
 
 from filterpy.kalman import KalmanFilter as FilterpyKF
 from kf_train.batch import run_linear_series, run_series
-from kf_train.cli.replay import main as replay_main, read_table
+from kf_train.cli.replay import main as replay_main
+from kf_train.io import read_table
 from kf_train.presets.loader import (
     available_presets, ControlMatrix, DtExpression, Dynamics, load_preset,
     load_preset_file, per_step_weights, preset_from_mapping, PRESET_NAMES)

@@ -8,7 +8,7 @@ bootstrap filter runs through the same checks and fails them.
 import math
 
 from kf_train.batch import run_filter_series, time_steps_s
-from kf_train.cli.compare import anees_bounds, nees, run_comparison
+from kf_train.evaluate import anees_bounds, nees, run_comparison
 from kf_train.filters import (
     FilterOptions, kernel_draws, make_filter, optimal_bandwidth, ParticleFilter,
     regularisation_jitter, RegularisedParticleFilter, tempering_step)

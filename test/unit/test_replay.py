@@ -8,7 +8,8 @@ import sys
 from kf_train import cli
 from kf_train.batch import (
     affine_recursion, run_linear_series, run_series, smooth_series, time_steps_s)
-from kf_train.cli.replay import main, read_table, required_columns
+from kf_train.cli.replay import main
+from kf_train.io import read_table, required_columns
 from kf_train.presets import load_preset, PRESET_NAMES
 from kf_train.sim import scenario_for_preset
 import numpy as np

@@ -10,8 +10,9 @@ import os
 
 from kf_train.batch import bank, group_rows, run_bank, run_filter_series, run_series
 from kf_train.batch import smooth_series
-from kf_train.cli.replay import main, read_table
+from kf_train.cli.replay import main
 from kf_train.filters import FilterOptions, make_filter
+from kf_train.io import read_table
 from kf_train.presets import load_preset, PRESET_NAMES
 import numpy as np
 import pytest

@@ -19,10 +19,11 @@ import io
 import os
 
 from kf_train.batch import run_series
-from kf_train.cli import progress
-from kf_train.cli.replay import main, read_table, required_columns
+from kf_train.cli.replay import main
 from kf_train.cli.simulate import main as simulate_main
+from kf_train.io import read_table, required_columns
 from kf_train.presets import load_preset
+from kf_train.replay import progress
 import numpy as np
 import pytest
 

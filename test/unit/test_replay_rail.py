@@ -6,9 +6,10 @@ import math
 import shutil
 
 from kf_train.batch import RailSeriesFilter
-from kf_train.cli.compare import format_table, run_comparison
+from kf_train.cli.compare import format_table
 from kf_train.cli.replay import main
 from kf_train.estimator import EstimatorSettings, StreamEstimator
+from kf_train.evaluate import run_comparison
 from kf_train.presets import load_rail_preset, RAIL_PRESET_PATH
 from kf_train.sim import family_parameters, rail_scenario
 import numpy as np

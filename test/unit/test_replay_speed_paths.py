@@ -12,8 +12,8 @@ import struct
 
 from hypothesis import given, settings, strategies as st
 from kf_train.batch import run_series
-from kf_train.cli.replay import main, read_table
-from kf_train.io import csv_tables, csvio
+from kf_train.cli.replay import main
+from kf_train.io import csv_tables, csvio, read_table
 from kf_train.presets import load_preset
 import numpy as np
 import pytest

@@ -105,7 +105,7 @@ def test_core_and_offline_commands_import_neither_scipy_nor_ros():
     The nodes are held to the same for scipy by test/integration/test_bench.py.
     """
     code = ('import sys, kf_train.core, kf_train.filters.chi2, kf_train.cli.replay, '
-            'kf_train.cli.compare\n'
+            'kf_train.cli.compare, kf_train.evaluate, kf_train.replay\n'
             'print(sorted({m.split(".")[0] for m in sys.modules} & {"scipy", "rclpy", '
             '"rcl_interfaces", "geometry_msgs", "nav_msgs"}))')
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,

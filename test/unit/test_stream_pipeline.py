@@ -2,8 +2,8 @@
 The streamed replay's two-thread pipeline (reader ahead, writer behind) changes no byte.
 
 kf-train replay --engine stream reads the next piece in a thread
-(:func:`kf_train.cli.replay_stream.prefetch`) and writes the previous block in another
-(:func:`kf_train.cli.replay_output.in_background`) while the main thread filters. Here
+(:func:`kf_train.replay.stream.prefetch`) and writes the previous block in another
+(:func:`kf_train.io.table_output.in_background`) while the main thread filters. Here
 both are replaced by plain sequential loops and the outputs compared byte for byte on
 inputs of many blocks (and many reader pieces), with and without ids, gaps, --smooth;
 an error raised inside a stage is the one-line error, with no partial output left.
@@ -11,9 +11,9 @@ an error raised inside a stage is the one-line error, with no partial output lef
 
 import os
 
-from kf_train.cli import replay_output, replay_stream
 from kf_train.cli.replay import main
-from kf_train.io import columnar
+from kf_train.io import columnar, table_output
+from kf_train.replay import stream as replay_stream
 import numpy as np
 import pytest
 
@@ -67,7 +67,7 @@ def test_pipelined_equals_sequential(tmp_path, monkeypatch, objects, gaps, smoot
     pipelined = _replay(source, tmp_path / name.format('-a').rstrip('/'), extra)
     with monkeypatch.context() as patch:
         patch.setattr(replay_stream, 'prefetch', _sequential_prefetch)
-        patch.setattr(replay_output, 'in_background', _sequential_in_background)
+        patch.setattr(table_output, 'in_background', _sequential_in_background)
         sequential = _replay(source, tmp_path / name.format('-b').rstrip('/'), extra)
     if kind == 'parquet':   # same doubles (the file's metadata may name the writer's run)
         import polars as pl

@@ -18,11 +18,12 @@ import os
 
 from kf_train.batch import (
     filter_table, group_rows, Rows, run_series, smooth_series, StreamingReplay)
-from kf_train.cli import replay_stream
-from kf_train.cli.replay import main, output_columns, run_preset, smooth_bank
+from kf_train.cli.replay import main
 from kf_train.filters import FilterOptions, make_filter
 from kf_train.io import columnar
 from kf_train.presets import load_preset
+from kf_train.replay import output_columns, run_preset, smooth_bank
+from kf_train.replay import stream as replay_stream
 import numpy as np
 import pytest
 
@@ -354,6 +355,7 @@ def test_offline_modules_import_no_columnar_library():
     import subprocess
     import sys
     code = ('import sys, kf_train.core, kf_train.estimator.estimator, kf_train.cli.replay, '
+            'kf_train.replay, '
             'kf_train.batch.stream, kf_train.batch.partition, kf_train.io.columnar\n'
             'print(sorted({m.split(".")[0] for m in sys.modules} & {"polars", "dask", '
             '"distributed", "pandas", "pyarrow"}))')

@@ -11,11 +11,11 @@ optimiser on the same likelihood returns the same numbers to the digit.
 import math
 
 from kf_train.cli import main as kf_train_main
-from kf_train.cli.bag_replay import load_config
 from kf_train.cli.tune import main as tune_main
 from kf_train.io.bagio_output import odometry_message
 from kf_train.io.bagio_simulation import SimulationBag
 from kf_train.io.bagio_types import ODOMETRY, TYPESTORE
+from kf_train.replay.bag import load_config
 from kf_train.ros import estimator_params, param_spec
 from kf_train.sim import cv_position_velocity_scenario, white_noise_acceleration_scenario
 import numpy as np

@@ -8,14 +8,14 @@ from kf_train.batch.rail_checks import rail_check
 from kf_train.batch.rail_likelihood import rail_log_likelihoods, RailNoise
 from kf_train.batch.rail_series import RailSeriesFilter
 from kf_train.cli import main as kf_train_main
-from kf_train.cli.bag_replay import load_config
-from kf_train.cli.rail_fit import derivatives, stencil
 from kf_train.cli.tune import main as tune_main
 from kf_train.estimator import EstimatorSettings, StreamEstimator
 from kf_train.estimator.live_presets import resolve_preset
 from kf_train.filters import chi2_mean_bounds, RailModel, RailModelParameters
 from kf_train.presets import load_rail_preset, RailPreset
+from kf_train.replay.bag import load_config
 from kf_train.sim.rail import rail_scenario
+from kf_train.tune.rail_fit import derivatives, stencil
 import numpy as np
 import pytest
 import yaml
@@ -260,7 +260,7 @@ def test_bad_input_is_one_line(tmp_path, capsys):
 
 def test_the_fit_finds_a_known_maximum_and_its_intervals():
     """On ℓ quadratic in log θ, the fit returns exp(m) and exp(m ± z·s) (the Wald interval)."""
-    from kf_train.cli.rail_fit import fit_rail_noise
+    from kf_train.tune import fit_rail_noise
     m = np.array([math.log(3e-4), math.log(2e-5), math.log(1.1)])
     sd = np.array([0.3, 0.5, 0.02])
     names = ['acceleration_noise', 'command_noise', 'measurement_variance']
@@ -282,7 +282,7 @@ def test_the_fit_finds_a_known_maximum_and_its_intervals():
 
 def test_a_noise_the_data_cannot_tell_from_zero_gets_zero_and_a_bound():
     """ℓ = −c·q_a falls from q_a = 0: q_a = 0, bound where c·q_a = χ²₁(0.90)/2."""
-    from kf_train.cli.rail_fit import fit_rail_noise
+    from kf_train.tune import fit_rail_noise
     c = 1000.0
 
     def likelihoods(settings):
@@ -333,7 +333,7 @@ def _sample_rail_model(params: RailModelParameters, rows: int, seed: int,
 
 def test_noises_the_data_carry_are_found_from_a_start_100x_too_small():
     """On data from the model itself, q_ℓ comes up from 1/100 of the truth; truth inside."""
-    from kf_train.cli.rail_fit import fit_rail_noise
+    from kf_train.tune import fit_rail_noise
     import dataclasses
     truth = dataclasses.replace(RailModelParameters(), acceleration_noise=3e-3,
                                 command_noise=3e-4)

@@ -2,7 +2,7 @@
 Tests of the noise estimation: likelihood, estimates, checks and the running suggestion.
 
 The likelihood, checks and running suggestion are kf_train.batch's, the estimates
-kf_train.cli.noise_fit's.
+kf_train.tune.noise_fit's.
 
 The likelihood is held to independent code: the streaming estimator's innovations
 (the node's filter), pykalman's log-likelihood, and EM on the same model built from
@@ -20,11 +20,11 @@ import sys
 from kf_train.batch import (
     make_segment, nis_consistency, NoiseParameterisation, NoiseSetting, noisy_preset,
     prediction_errors, RunningNoiseEstimate, TuningProblem)
-from kf_train.cli.noise_fit import estimate_noise
 from kf_train.estimator import EstimatorSettings, StreamEstimator
 from kf_train.filters import chi2_mean_bounds, NS_PER_S, WhiteNoiseAcceleration
 from kf_train.presets import load_preset
 from kf_train.sim import car_scenario, TrainSimulation, white_noise_acceleration_scenario
+from kf_train.tune import estimate_noise
 import numpy as np
 import pytest
 

@@ -1,5 +1,5 @@
 """
-``kf-train plot --preset rail``: the rail IMM over a stop, its 2-s prediction and regimes.
+The rail IMM over a stop, its 2-s prediction and regimes (``kf-train plot --preset rail``).
 
 A seeded metro-like rail run (:func:`kf_train.sim.rail_scenario`, σ = 1 m at 10 Hz)
 is filtered row by row as the streaming estimator's default does
@@ -18,6 +18,7 @@ import os
 from typing import List, NamedTuple
 
 from kf_train.batch import RailSeriesFilter
+from kf_train.plots.figures import new_figure, save
 from kf_train.presets import load_rail_preset
 from kf_train.sim import family_parameters, rail_scenario
 import numpy as np
@@ -66,7 +67,6 @@ def rail_track(scenario, horizon_s: float = HORIZON_S) -> RailTrack:
 
 def rail_figures(output_dir: str, seed: int = 0) -> List[str]:
     """Simulate a metro rail run of ``seed``, filter it, write rail.png and rail_run.png."""
-    from kf_train.cli.plotting import new_figure, save
     params = dataclasses.replace(family_parameters('metro', seed), duration_s=RAIL_PLOT_S)
     scenario, run = rail_scenario(seed, 'metro', parameters=params)
     track = rail_track(scenario)

@@ -2,7 +2,7 @@
 The rail demo's figure: a stop seen by the estimator, and its regime probabilities.
 
 Four panels on one PNG (matplotlib's Agg canvas through
-:func:`kf_train.cli.plotting.new_figure`; no pyplot):
+:func:`kf_train.plots.figures.new_figure`; no pyplot):
 
 1. Around the stop: distance still to go to the stopping point, true and estimated,
    and the position predicted ``horizon_s`` earlier for each time with its ±2σ band.
@@ -12,10 +12,11 @@ Four panels on one PNG (matplotlib's Agg canvas through
 4. The regime probabilities over the whole run, the true stops shaded.
 
 ``series`` is a :class:`kf_train.cli.demo_rail.RailSeries` (any object with its
-fields), ``run`` the exact truth (:class:`kf_train.sim.RailRun`).
+fields: the demo is a command, a floor above), ``run`` the exact truth
+(:class:`kf_train.sim.RailRun`).
 """
 
-from kf_train.cli.plotting import new_figure, save
+from kf_train.plots.figures import new_figure, save
 import numpy as np
 
 BEFORE_ARRIVAL_S = 30.0

@@ -21,7 +21,9 @@ import tempfile
 import time
 
 from kf_train.batch import filter_partition, partition_meta
-from kf_train.cli import replay as inmemory
+from kf_train.io import ID_COLUMN, InputError, required_columns
+from kf_train.replay.memory import ReplaySummary
+from kf_train.replay.stream import is_parquet
 
 KEY = '_kf_train_row'
 # Rows per partition and above: enough to hold a 2**40-row partition's row numbers.
@@ -45,7 +47,6 @@ def _filter_in_order(partition, preset, options):
 
 def _read(dd, path: str, columns):
     """Return the input as a Dask DataFrame with ``columns``."""
-    from kf_train.cli.replay_stream import is_parquet
     if is_parquet(path):
         return dd.read_parquet(path, columns=columns)
     return dd.read_csv(path, usecols=columns, dtype={'id': str}, blocksize='64MB')
@@ -64,27 +65,27 @@ def _client(workers: int, scheduler):
 
 def dask_replay(preset, input_path: str, output_path: str, *, workers: int = 2,
                 scheduler=None, horizon_s=None, smooth: bool = False, t0_s: float = 0.0,
-                filt=None) -> inmemory.ReplaySummary:
+                filt=None) -> ReplaySummary:
     """Replay a fleet log on Dask; raise InputError for bad input."""
     try:
         import dask.dataframe as dd
     except ImportError:
-        raise inmemory.InputError(f'--engine dask: {DASK_HINT}') from None
+        raise InputError(f'--engine dask: {DASK_HINT}') from None
     start = time.perf_counter()
     owner = preset if filt is None else filt.preset
-    needed = [names[0] for names in inmemory.required_columns(owner)]
+    needed = [names[0] for names in required_columns(owner)]
     options = {'horizon_s': horizon_s, 't0_s': t0_s, 'smooth': smooth, 'filt': filt}
     for name in ('distributed', 'distributed.shuffle'):
         logging.getLogger(name).setLevel(logging.ERROR)   # the shuffle logs at WARNING
     client, cluster = _client(workers, scheduler)
     try:
         try:
-            frame = _read(dd, input_path, [inmemory.ID_COLUMN] + needed)
+            frame = _read(dd, input_path, [ID_COLUMN] + needed)
         except (ValueError, KeyError, OSError) as error:
-            raise inmemory.InputError(f'{input_path}: {error} (the dask engine needs the '
-                                      f'columns id, {", ".join(needed)})') from None
+            raise InputError(f'{input_path}: {error} (the dask engine needs the '
+                             f'columns id, {", ".join(needed)})') from None
         keyed = frame.map_partitions(_with_key, meta=frame._meta.assign(**{KEY: 0}))
-        shuffled = keyed.shuffle(on=inmemory.ID_COLUMN,
+        shuffled = keyed.shuffle(on=ID_COLUMN,
                                  npartitions=max(frame.npartitions, 2 * workers))
         meta = partition_meta(owner, horizon_s=horizon_s, smooth=smooth).assign(**{KEY: 0})
         estimates = shuffled.map_partitions(_filter_in_order, owner, options, meta=meta)
@@ -94,7 +95,7 @@ def dask_replay(preset, input_path: str, output_path: str, *, workers: int = 2,
         if cluster is not None:
             cluster.close()
     header = list(meta.columns.drop(KEY))
-    return inmemory.ReplaySummary(rows, header, time.perf_counter() - start)
+    return ReplaySummary(rows, header, time.perf_counter() - start)
 
 
 def _write(estimates, output_path: str) -> int:

@@ -10,7 +10,8 @@ its first measurement as the streaming estimator's default starts
 (:class:`kf_train.batch.RailSeriesFilter`). The truth has position, velocity and
 acceleration, so the NEES is taken over those three states (the filter's other
 states, the commanded acceleration and the capabilities A and B, have no truth).
-The table, curves and figure are :mod:`kf_train.cli.compare`'s.
+The scores are :mod:`kf_train.evaluate.scores`'; the table, curves and figure those of
+``kf-train compare`` (:mod:`kf_train.cli.compare`).
 """
 
 import dataclasses
@@ -19,6 +20,7 @@ from typing import Optional, Sequence
 
 from kf_train.batch import RailSeriesFilter, run_filter_series, SeriesError
 from kf_train.estimator import RAIL_FILTER_KINDS
+from kf_train.evaluate.scores import Comparison, nees, summarise
 from kf_train.presets import load_rail_preset
 from kf_train.sim import DEFAULT_RAIL_FAMILY, family_parameters, rail_scenario
 import numpy as np
@@ -31,8 +33,7 @@ SCORED_STATES = 3
 
 def run_rail_comparison(runs: int, seed: int, kinds: Optional[Sequence[str]],
                         family: str = DEFAULT_RAIL_FAMILY, duration_s: float = RAIL_RUN_S):
-    """Return the :class:`~kf_train.cli.compare.Comparison` of the rail IMM over ``runs``."""
-    from kf_train.cli.compare import _summary, Comparison, nees
+    """Return the :class:`~kf_train.evaluate.scores.Comparison` of the rail IMM over ``runs``."""
     kinds = tuple(kinds or ('kf',))
     for kind in kinds:
         if kind not in RAIL_FILTER_KINDS:
@@ -60,8 +61,8 @@ def run_rail_comparison(runs: int, seed: int, kinds: Optional[Sequence[str]],
             errors = result.x[:, :SCORED_STATES] - scenario.truth
             sq_errors[kind].append(errors[:, 0] ** 2)
             nees_rows[kind].append(nees(errors, result.P[:, :SCORED_STATES, :SCORED_STATES]))
-    summaries = [_summary(kind, sq_errors[kind], nees_rows[kind], failed[kind],
-                          seconds[kind], max(steps, 1), SCORED_STATES, len(t_s), {})
+    summaries = [summarise(kind, sq_errors[kind], nees_rows[kind], failed[kind],
+                           seconds[kind], max(steps, 1), SCORED_STATES, len(t_s), {})
                  for kind in kinds]
     return Comparison('rail', runs, seed, 'first_measurement', np.asarray(t_s), SCORED_STATES,
                       summaries, rail_family=family)

@@ -22,7 +22,7 @@ import time
 from typing import Callable, List, NamedTuple, Sequence, Tuple
 
 from kf_train.batch import RailNoise
-from kf_train.cli.noise_fit import _normal_quantile
+from kf_train.tune.noise_fit import boundary_threshold, normal_quantile
 import numpy as np
 
 STEP = 1e-2
@@ -229,8 +229,7 @@ def _boundary(likelihoods: Likelihoods, names, fixed: RailNoise, vector, ll_hat:
     then tenths of the decade that crossed, interpolated linearly in log θ (to ~1 % of
     θ). "At zero": ℓ(θ_i = 0) is within 1e-3 of ℓ̂.
     """
-    from kf_train.cli.noise_fit import _boundary_threshold
-    threshold = _boundary_threshold(confidence)
+    threshold = boundary_threshold(confidence)
     process = [i for i, n in enumerate(names) if n != 'measurement_variance']
     base = _setting(names, vector, fixed)
     zeros = likelihoods([base._replace(**{names[i]: 0.0}) for i in process])
@@ -272,7 +271,7 @@ def _estimates(names: List[str], vector: np.ndarray, H: np.ndarray, confidence: 
     The covariance is the inverse of the observed information H (of −ℓ) restricted
     to the noises not at the boundary (theirs conditional on those).
     """
-    z = _normal_quantile(confidence)
+    z = normal_quantile(confidence)
     inner = [i for i in range(len(names)) if i not in bounds]
     covariance = np.full(H.shape, np.nan)
     sub = H[np.ix_(inner, inner)]

@@ -12,7 +12,7 @@ Two CSV paths give the same bytes:
   anything it cannot vouch for (blank lines, a bad cell, an error to report) sends
   the whole replay back to the start on the built-in path, which names the line;
 * without it, the built-in path: the file in blocks of lines, each parsed by
-  :func:`kf_train.cli.replay.read_table` and written by :mod:`kf_train.io.csvio`.
+  :func:`kf_train.io.tables.read_table` and written by :mod:`kf_train.io.csvio`.
 
 Parquet needs the extra. Output goes to a temporary file (or directory) beside OUTPUT
 that replaces it only when complete, so bad input leaves no partial output.
@@ -36,12 +36,13 @@ import time
 from typing import Dict, Iterator, List, Optional
 
 from kf_train.batch import DEFAULT_BLOCK_ROWS, GapsFound, RowError, Rows, StreamingReplay
-from kf_train.cli import replay as inmemory
-from kf_train.cli.progress import Progress
-from kf_train.io import columnar
+from kf_train.io import (
+    columnar, decode_text, HEADER_LINE, header_names, ID_COLUMN, InputError, open_output,
+    read_table, required_columns, resolve_columns, UTF8_BOM)
+from kf_train.replay.memory import ReplaySummary
+from kf_train.replay.progress import Progress
 import numpy as np
 
-ID_COLUMN = inmemory.ID_COLUMN
 # Bytes of CSV text the built-in reader parses at a time.
 BLOCK_BYTES = 1 << 20
 
@@ -78,7 +79,7 @@ class Source:
     def __init__(self, path: str, preset, where: str = 'line'):
         """Read ``path`` for ``preset``; ``where`` is 'line' (CSV) or 'row' (Parquet)."""
         self.path, self.preset, self.where = path, preset, where
-        self.needed = inmemory.required_columns(preset)
+        self.needed = required_columns(preset)
         self.gaps_needed = self.needed[1:1 + preset.dim_z]   # measurements may be empty
         self.wanted: List[str] = []
         self.id_column: Optional[str] = None
@@ -121,13 +122,13 @@ class Source:
 def _header_of(path: str, data: bytes) -> List[str]:
     """Return the header's names, checked as the in-memory replay checks them."""
     head = data.partition(b'\n')[0]
-    if head.startswith(inmemory.UTF8_BOM):
-        head = head[len(inmemory.UTF8_BOM):]
-    text = inmemory._decode(path, head.rstrip(b'\r'))
+    if head.startswith(UTF8_BOM):
+        head = head[len(UTF8_BOM):]
+    text = decode_text(path, head.rstrip(b'\r'))
     if not text.strip():
-        raise inmemory.InputError(f'{path} line {inmemory.HEADER_LINE}: expected a header '
-                                  'row naming the columns, e.g. t,z_position')
-    return inmemory._header(path, text)
+        raise InputError(f'{path} line {HEADER_LINE}: expected a header row naming the '
+                         'columns, e.g. t,z_position')
+    return header_names(path, text)
 
 
 class CsvSource(Source):
@@ -138,7 +139,7 @@ class CsvSource(Source):
         self.stream = _open(getattr(self, 'spooled', None) or self.path)
         head = self.stream.readline()
         header = _header_of(self.path, head)
-        self.wanted = inmemory._resolve(self.path, header, self.needed)
+        self.wanted = resolve_columns(self.path, header, self.needed)
         self.id_column = ID_COLUMN if ID_COLUMN in header else None
         self.head = head.rstrip(b'\r\n')
 
@@ -158,17 +159,17 @@ class CsvSource(Source):
     def _parse(self, head: bytes, block: bytes, line: int):
         """Parse one block; errors name the file's line."""
         try:
-            return inmemory.read_table(self.path, self.needed, head + b'\n' + block, ids=True,
-                                       gaps=self.gaps_needed)
-        except inmemory.InputError as error:
+            return read_table(self.path, self.needed, head + b'\n' + block, ids=True,
+                              gaps=self.gaps_needed)
+        except InputError as error:
             prefix = f'{self.path} line '
             message = str(error)
             if message.startswith(prefix):
                 match = re.match(r'\d+', message[len(prefix):])
-                if match and int(match.group()) > inmemory.HEADER_LINE:
+                if match and int(match.group()) > HEADER_LINE:
                     number = int(match.group()) - 2 + line
                     message = prefix + str(number) + message[len(prefix) + match.end():]
-            raise inmemory.InputError(message) from None
+            raise InputError(message) from None
 
 
 def _stdin():
@@ -196,7 +197,7 @@ def _open(path: str):
     try:
         return open(path, 'rb')
     except OSError as error:
-        raise inmemory.InputError(f'{path}: cannot read: {error.strerror}') from None
+        raise InputError(f'{path}: cannot read: {error.strerror}') from None
 
 
 def _line_blocks(stream) -> Iterator[bytes]:
@@ -230,7 +231,7 @@ class FastCsvSource(Source):
         """Read and check the header."""
         self.stream = _open(self.path)
         self.header = _header_of(self.path, self.stream.readline())
-        self.wanted = inmemory._resolve(self.path, self.header, self.needed)
+        self.wanted = resolve_columns(self.path, self.header, self.needed)
         self.id_column = ID_COLUMN if ID_COLUMN in self.header else None
 
     def pieces(self) -> Iterator[Rows]:
@@ -252,10 +253,10 @@ class ParquetSource(Source):
         self.where = 'row'
         header = columnar.parquet_columns(self.path)
         try:
-            self.wanted = inmemory._resolve(self.path, header, self.needed)
-        except inmemory.InputError as error:          # a schema has no line 1
-            raise inmemory.InputError(str(error).replace(
-                f'{self.path} line {inmemory.HEADER_LINE}:', f'{self.path}:', 1)) from None
+            self.wanted = resolve_columns(self.path, header, self.needed)
+        except InputError as error:          # a schema has no line 1
+            raise InputError(str(error).replace(
+                f'{self.path} line {HEADER_LINE}:', f'{self.path}:', 1)) from None
         self.id_column = ID_COLUMN if ID_COLUMN in header else None
         self.total = columnar.parquet_rows(self.path)
 
@@ -349,7 +350,6 @@ def _blocks(source: Source, engine: StreamingReplay) -> Iterator[tuple]:
 
 def _run_once(source: Source, output_path: str, fast_output: bool, options: dict):
     """Replay once from ``source``; return the output header."""
-    from kf_train.cli.replay_output import open_output
     source.start()
     with StreamingReplay(source.preset, **options) as engine:
         header = ([ID_COLUMN] if source.id_column else []) + engine.header
@@ -375,7 +375,7 @@ def _sources(preset, input_path: str, fast: bool) -> List[Source]:
 def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
                   smooth: bool = False, t0_s: float = 0.0, filt=None,
                   block_rows: int = DEFAULT_BLOCK_ROWS, codec: str = 'auto',
-                  spill_dir: Optional[str] = None) -> inmemory.ReplaySummary:
+                  spill_dir: Optional[str] = None) -> ReplaySummary:
     """
     Replay ``input_path`` into ``output_path`` in bounded memory; raise InputError.
 
@@ -386,9 +386,9 @@ def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
     have = columnar.available()
     parquet = is_parquet(input_path) or is_parquet(output_path)
     if (parquet or codec == 'polars') and not have:
-        raise inmemory.InputError(f'{input_path if is_parquet(input_path) else output_path}: '
-                                  f'Parquet needs polars: {columnar.EXTRA_HINT}'
-                                  if parquet else f'--codec polars: {columnar.EXTRA_HINT}')
+        raise InputError(f'{input_path if is_parquet(input_path) else output_path}: '
+                         f'Parquet needs polars: {columnar.EXTRA_HINT}'
+                         if parquet else f'--codec polars: {columnar.EXTRA_HINT}')
     fast = have and codec != 'builtin'
     options = {'horizon_s': horizon_s, 't0_s': t0_s, 'filt': filt, 'smooth': smooth,
                'block_rows': block_rows, 'spill_dir': spill_dir, 'gaps': False}
@@ -401,7 +401,7 @@ def stream_replay(preset, input_path: str, output_path: str, *, horizon_s=None,
             except GapsFound:                  # rows without a measurement: again, with
                 options['gaps'] = True         # the column that flags them
                 continue
-            return inmemory.ReplaySummary(rows, header, time.perf_counter() - start)
+            return ReplaySummary(rows, header, time.perf_counter() - start)
     finally:
         if spooled is not None:
             os.unlink(spooled)
@@ -421,13 +421,13 @@ def _replay_with(preset, input_path: str, output_path: str, fast: bool, options:
         except RowError as error:
             if not last:
                 continue                  # the careful reader names the line
-            raise inmemory.InputError(_row_message(source, error)) from None
+            raise InputError(_row_message(source, error)) from None
         except columnar.ParquetError as error:
             at = '' if error.row is None else f' row {error.row + 1},'
-            raise inmemory.InputError(f'{input_path}{at} {error}') from None
-        except inmemory.InputError:
+            raise InputError(f'{input_path}{at} {error}') from None
+        except InputError:
             raise
         except ValueError as error:
-            raise inmemory.InputError(f'{input_path}: {error}') from None
+            raise InputError(f'{input_path}: {error}') from None
         return source.rows, header
     raise AssertionError('the careful reader never gives up')  # pragma: no cover

@@ -4,8 +4,8 @@ Maximum-likelihood noise with confidence intervals: q, R (and initial state) fro
 The likelihood is the estimator node's own (:class:`kf_train.batch.TuningProblem`), the
 estimated quantities a :class:`kf_train.batch.NoiseParameterisation`. The optimiser is
 scipy's (L-BFGS-B, Brent): scipy is the optional extra of ``kf-train tune`` (``pip
-install kf_train[tune]``), imported only inside these functions and only in this
-command-line floor, never by the nodes.
+install kf_train[tune]``), imported only inside these functions and only in
+:mod:`kf_train.tune`, never by the nodes.
 
 The confidence intervals come from the curvature of ℓ at its maximum (the observed
 information, inverted: the Wald interval in the optimiser's coordinates, mapped back by
@@ -66,7 +66,7 @@ class TuningResult(NamedTuple):
     message: str
 
 
-def _normal_quantile(confidence: float) -> float:
+def normal_quantile(confidence: float) -> float:
     """Return z with P(|N(0, 1)| <= z) = confidence (from χ²(1), no scipy.stats)."""
     return math.sqrt(chi2_quantile(confidence, 1))
 
@@ -180,7 +180,7 @@ def _profile_drop(objective: _Objective, vector, ll_hat: float, i: int, value: f
                         objective.log_likelihood(held(start)))
 
 
-def _boundary_threshold(confidence: float) -> float:
+def boundary_threshold(confidence: float) -> float:
     """
     Return the drop of ℓ that rejects θ_i = 0 at 1 − ``confidence`` (one-sided).
 
@@ -244,7 +244,7 @@ def _estimates(objective, vector, H, ll_hat, bounds, confidence):
     the inverse of the information restricted to them. The rest get Wald intervals.
     """
     parameters = objective.parameterisation.parameters
-    threshold = _boundary_threshold(confidence)
+    threshold = boundary_threshold(confidence)
     diagonal = np.diag(H) / objective.rows
     positive = diagonal > 0.0       # a flat direction (0) keeps the unit scale
     scale = np.ones_like(diagonal)
@@ -256,7 +256,7 @@ def _estimates(objective, vector, H, ll_hat, bounds, confidence):
     boundary = [i for i, drop in drops.items() if drop <= threshold]
     covariance = _inverse_information(H, [i for i in range(len(parameters))
                                           if i not in boundary])
-    z = _normal_quantile(confidence)
+    z = normal_quantile(confidence)
     out, at_zero = [], []
     for i, parameter in enumerate(parameters):
         variance = covariance[i, i]

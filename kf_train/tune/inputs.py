@@ -4,7 +4,7 @@ What ``kf-train tune`` reads: a replay CSV, Parquet, or a rosbag2 bag, as tuning
 The inputs are those of ``kf-train replay``, read by the replay's own readers:
 
 * a CSV (or '-', standard input): the replay's table reader
-  (:func:`kf_train.cli.replay.read_table`: ``t``, the measurement columns, ``u``
+  (:func:`kf_train.io.read_table`: ``t``, the measurement columns, ``u``
   where the preset has a control, optionally ``id``), plus optional truth columns
   ``true_<state>``; a row with an empty measurement cell (a dropped sample) is left
   out, as the node never receives it;
@@ -37,14 +37,16 @@ import contextlib
 import os
 from typing import Callable, List, NamedTuple, Optional
 
-from kf_train.batch import group_rows, Segment
-from kf_train.cli.replay import (
-    check_bank_times, check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns)
+from kf_train.batch import (
+    bank_time_steps, group_rows, Groups, MAX_ABS_TIME_S, Segment, TimeOrderError)
+from kf_train.filters import NS_PER_S
+from kf_train.io import (
+    check_time_range, check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns,
+    resolve_columns, time_order_error)
 from kf_train.presets import Preset
 import numpy as np
 
 TRUTH_PREFIX = 'true_'
-NS_PER_S = 1_000_000_000
 DEFAULT_TRUTH_TOPIC = 'ground_truth'
 OUT_OF_ORDER_S = 1.0
 """A stamp this far behind the newest starts a new segment (the node's default history_s)."""
@@ -94,6 +96,18 @@ def _header(data: bytes) -> List[str]:
     return [name.strip().strip('"').strip() for name in line.split(',')]
 
 
+def check_bank_times(path: str, t: np.ndarray, lines: np.ndarray, groups: Groups,
+                     labels: List[str], t0_s: float) -> None:
+    """Raise InputError naming the line of the first time out of range or order per id."""
+    # The replay's check (kf_train.replay.memory.check_bank_times) too: a floor apart.
+    check_time_range(path, t, lines, MAX_ABS_TIME_S)
+    try:
+        bank_time_steps(t, groups, t0_s)
+    except TimeOrderError as error:
+        raise time_order_error(path, t, lines, t0_s, error.row, error.previous,
+                               labels[groups.codes[error.row]]) from None
+
+
 def table_segments(path: str, preset: Preset, columns: dict, lines: np.ndarray,
                    ids: Optional[np.ndarray] = None, id_labels: Optional[List[str]] = None,
                    missing: Optional[np.ndarray] = None) -> List[Segment]:
@@ -108,7 +122,7 @@ def table_segments(path: str, preset: Preset, columns: dict, lines: np.ndarray,
         raise InputError(f'{path}: no rows: nothing to estimate from')
     first = float(np.min(t))
     if ids is None:
-        check_times(path, t, lines, first)
+        check_times(path, t, lines, first, MAX_ABS_TIME_S)
     else:
         check_bank_times(path, t, lines, group_rows(ids), id_labels, first)
     if missing is not None and missing.any():
@@ -155,9 +169,8 @@ def read_csv(path: str, preset: Preset, topics: TopicOptions = TopicOptions()) -
 
 def _parquet_names(path: str, header: List[str], preset: Preset) -> List[str]:
     """Return the columns to read: t, measurements, controls, truth (the replay's names)."""
-    from kf_train.cli.replay import _resolve   # the replay's column resolution
     try:
-        wanted = _resolve(path, header, required_columns(preset))
+        wanted = resolve_columns(path, header, required_columns(preset))
     except InputError as error:                 # a schema has no line 1
         raise InputError(str(error).replace(f'{path} line 1:', f'{path}:', 1)) from None
     return wanted + [TRUTH_PREFIX + s for s in preset.state_names

@@ -5,7 +5,7 @@ The rail preset (docs/rail.md) has no white-noise acceleration density q: each m
 regime has an acceleration noise q_a and a command noise q_ℓ (``acceleration_noise``,
 ``command_noise``), and the measurement variance R. This module estimates those the
 data can identify by maximum likelihood of the IMM's innovations
-(:mod:`kf_train.batch.rail_likelihood`, maximised by :mod:`kf_train.cli.rail_fit`),
+(:mod:`kf_train.batch.rail_likelihood`, maximised by :mod:`kf_train.tune.rail_fit`),
 checks the node's own filter before and after (:func:`kf_train.batch.rail_checks.rail_check`:
 NIS, whiteness, and with truth the 2-s prediction RMSE and 2σ coverage), and writes
 
@@ -16,7 +16,8 @@ NIS, whiteness, and with truth the 2-s prediction RMSE and 2σ coverage), and wr
 * PARAMS.yaml, ``estimator: ros__parameters:`` with ``preset`` the absolute path of that
   file and ``measurement_variance`` where R was estimated or given.
 
-The inputs and their options are ``kf-train tune``'s (:mod:`kf_train.cli.tune`).
+The inputs and their options are ``kf-train tune``'s (:class:`kf_train.tune.TuneOptions`;
+the command line is :mod:`kf_train.cli.tune`).
 """
 
 import datetime
@@ -25,44 +26,18 @@ import os
 from typing import List, Optional
 
 from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
-from kf_train.cli.rail_fit import fit_rail_noise, RailFit
-from kf_train.cli.replay import check_file_target, write_atomic
-from kf_train.cli.tune_inputs import reader_for, TopicOptions
-from kf_train.presets import rail_preset_from_mapping, RailPreset
+from kf_train.io import check_output_path, write_atomic
+from kf_train.presets import (
+    is_rail_preset_file, load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_NAME,
+    RailPreset)
+from kf_train.tune.inputs import reader_for, TopicOptions
+from kf_train.tune.linear import carried_variances, params_yaml, TuneOptions
+from kf_train.tune.rail_fit import fit_rail_noise, RailFit
 import numpy as np
 
 CHECK_CONFIDENCE = 0.99
 DEFAULT_NOISES = ('acceleration_noise', 'command_noise')
 TUNABLE_NOISES = ('acceleration_noise', 'command_noise', 'capability_noise')
-_REFUSED = (('fix_q', '--fix-q'), ('initial_state', '--initial-state'), ('t0', '--t0'))
-
-
-def add_rail_arguments(parser) -> None:
-    """Add the rail preset's own option to ``kf-train tune``'s parser."""
-    parser.add_argument('--rail-noises', metavar='NAMES',
-                        help='rail preset: the noises to estimate, comma-separated '
-                             '(default acceleration_noise,command_noise; also '
-                             'capability_noise); R too unless the data carry it')
-
-
-def check_rail_args(parser, args) -> List[str]:
-    """Refuse the options that have no meaning for the rail preset (exit 2); return the noises."""
-    for attribute, option in _REFUSED:
-        if getattr(args, attribute, None) not in (None, False):
-            parser.error(f'{option} does not apply to the rail preset (it has no q; '
-                         'its noises are acceleration_noise and command_noise)')
-    if args.initialization == 'prior':
-        parser.error('--initialization prior does not apply to the rail preset (the node '
-                     'starts it from the first measurement)')
-    noises = [n.strip() for n in (args.rail_noises or ','.join(DEFAULT_NOISES)).split(',')]
-    for name in noises:
-        if name not in TUNABLE_NOISES:
-            parser.error(f"--rail-noises: {name!r} is not one of {', '.join(TUNABLE_NOISES)}")
-    if len(set(noises)) != len(noises):
-        parser.error('--rail-noises: a noise is named twice')
-    if args.fix_r is not None and len(args.fix_r) != 1:
-        parser.error('--fix-r takes one variance for the rail preset (it measures the position)')
-    return noises
 
 
 def _moment_variance(segments) -> float:
@@ -161,9 +136,8 @@ def _check_lines(before, after, ll_before: float, ll_after: float) -> List[str]:
     return lines
 
 
-def _setup(args, preset: RailPreset, noises: List[str]):
+def _setup(args: TuneOptions, preset: RailPreset, noises: List[str]):
     """Return (data, notes, fixed setting, start setting, R written?)."""
-    from kf_train.cli.tune import carried_variances
     data = reader_for(args.input)(args.input, preset,
                                   TopicOptions(args.topic, args.control_topic, args.truth_topic))
     carried, note = carried_variances(data, args.estimate_r)
@@ -179,7 +153,7 @@ def _setup(args, preset: RailPreset, noises: List[str]):
     return data, notes, fixed, names, before, args.fix_r is not None or fixed_r is None
 
 
-def _comments(args, fit: RailFit, rows: int, spec_label: str, preset_output: str,
+def _comments(args: TuneOptions, fit: RailFit, rows: int, spec_label: str, preset_output: str,
               notes: List[str]) -> List[str]:
     """Return the params file's leading comments."""
     use = os.path.basename(args.output)
@@ -194,16 +168,15 @@ def _comments(args, fit: RailFit, rows: int, spec_label: str, preset_output: str
     return comments
 
 
-def tune_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> str:
+def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_label: str) -> str:
     """Estimate, check, write the files; return the report (ValueError for bad input)."""
-    from kf_train.cli.tune import params_yaml
     if args.output == '-' and not args.preset_output:
         raise ValueError('--preset-output is needed with --output - (the params file '
                          'points at the tuned rail preset file)')
     preset_output = args.preset_output or default_preset_output(args.output)
     for target in (args.output, preset_output):
         if target != '-':
-            check_file_target(target)       # before minutes of work, not after
+            check_output_path(target)       # before minutes of work, not after
     data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
     segments = data.segments
     rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
@@ -237,9 +210,8 @@ def tune_rail(args, preset: RailPreset, noises: List[str], spec_label: str) -> s
     return text + f'\nwrote {args.output} and {preset_output}'
 
 
-def rail_preset_of(args) -> Optional[RailPreset]:
+def rail_preset_of(args: TuneOptions) -> Optional[RailPreset]:
     """Return the rail preset ``args`` choose (--preset rail or a rail --config), else None."""
-    from kf_train.presets import is_rail_preset_file, load_rail_preset, RAIL_PRESET_NAME
     if args.config:
         return load_rail_preset(args.config) if is_rail_preset_file(args.config) else None
     return load_rail_preset() if args.preset in (None, RAIL_PRESET_NAME) else None

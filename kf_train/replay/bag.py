@@ -35,20 +35,16 @@ A bad bag, parameter or output path: a one-line error, exit 1, no output at all.
 
 import itertools
 import math
-import sys
 import time
 from typing import Callable, Iterator, List, NamedTuple, Optional
 
-from kf_train.cli.progress import counted
-from kf_train.cli.replay import check_file_target, write_atomic
-from kf_train.cli.replay_engines import collector_frozen
-from kf_train.estimator import StreamEstimator
-from kf_train.io import bagio, bagio_output, csvio
-from kf_train.ros import diagnostics as ros_diagnostics
+from kf_train.estimator import is_rail, resolve_preset
+from kf_train.filters import NS_PER_S
+from kf_train.io import bagio, bagio_output, check_output_path, csvio, write_atomic
+from kf_train.replay.progress import counted
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
 import numpy as np
 
-NS_PER_S = 1_000_000_000
 CSV_ROWS_PER_CHUNK = 4096
 
 
@@ -82,7 +78,7 @@ class BagRun:
     def __init__(self, config, bag: 'bagio.BagInput'):
         """Prepare to run ``config`` over ``bag``."""
         self.config, self.bag = config, bag
-        self.preset = StreamEstimator(config.settings).preset
+        self.preset = resolve_preset(config.settings.preset)   # the estimator's, unbuilt
         self.session = None
         self.now_ns = self.first_ns = 0
 
@@ -183,7 +179,7 @@ def _csv_chunks(run: BagRun, counts: dict) -> Iterator:
 
 def write_csv(run: BagRun, path: str, counts: dict) -> None:
     """Replay into a CSV at ``path`` (atomically)."""
-    check_file_target(path)
+    check_output_path(path)
     try:
         write_atomic(path, _csv_chunks(run, counts))
     except OSError as error:
@@ -193,7 +189,8 @@ def write_csv(run: BagRun, path: str, counts: dict) -> None:
 def write_bag(run: BagRun, path: str, counts: dict) -> None:
     """Replay into an MCAP bag at ``path`` (atomically)."""
     options = run.config.options
-    regimes = ros_diagnostics.regime_names(StreamEstimator(run.config.settings))
+    preset = run.preset
+    regimes = tuple(preset.mode_names) if is_rail(preset) else ()   # as the node writes
     with bagio_output.OutputBag(path, frame_id=options.frame_id,
                                 child_frame_id=options.child_frame_id,
                                 regime_names=regimes) as out:
@@ -222,7 +219,7 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
                control_topic: Optional[str] = None) -> BagReplaySummary:
     """Replay ``bag_path`` with the node configuration ``config``; ValueError (one line)."""
     start = time.perf_counter()
-    preset = StreamEstimator(config.settings).preset
+    preset = resolve_preset(config.settings.preset)
     measurement_type, control_type = bagio.expected_types(preset.measurement_names,
                                                           preset.control_names)
     counts = {'estimates': 0}
@@ -236,22 +233,3 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
             counts['estimates'], session.rejected if session else 0,
             (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
             bag.measurement_topic)
-
-
-def bag_main(args) -> int:
-    """Run the bag replay for parsed ``kf-train replay`` arguments; return the exit code."""
-    try:
-        config = load_config(args.params_file or [], args.parameter or [])
-        with collector_frozen():
-            summary = replay_bag(args.input, args.output, config, args.topic,
-                                 args.control_topic)
-    except ValueError as error:
-        print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
-        return 1
-    rate = summary.measurements / summary.seconds if summary.seconds > 0 else math.inf
-    print(f'kf-train replay: {summary.measurements} measurements on '
-          f'{summary.measurement_topic}, {summary.controls} controls, '
-          f'{summary.rejected} rejected -> {summary.estimates} estimates in '
-          f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
-          file=sys.stderr)
-    return 0

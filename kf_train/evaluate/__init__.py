@@ -1,0 +1,21 @@
+"""
+Floor 5, evaluation: the filter family compared on seeded Monte-Carlo runs.
+
+* :mod:`~kf_train.evaluate.compare`: :func:`run_comparison` over a preset's seed
+  scenarios (the rail IMM's over rail runs: :mod:`~kf_train.evaluate.compare_rail`);
+* :mod:`~kf_train.evaluate.scores`: RMSE, NEES and ANEES with its χ² bounds.
+"""
+
+from kf_train.evaluate.compare import (
+    DEFAULT_COMPARE_PARTICLES, default_kinds, DEFAULT_RUNS, INITIAL_MODES, position_indices,
+    run_comparison)
+from kf_train.evaluate.compare_rail import run_rail_comparison
+from kf_train.evaluate.scores import (
+    anees_bounds, Comparison, CONFIDENCE, derived_seed, FilterSummary, nees, summarise,
+    write_curves)
+
+__all__ = [
+    'anees_bounds', 'Comparison', 'CONFIDENCE', 'DEFAULT_COMPARE_PARTICLES', 'DEFAULT_RUNS',
+    'default_kinds', 'derived_seed', 'FilterSummary', 'INITIAL_MODES', 'nees',
+    'position_indices', 'run_comparison', 'run_rail_comparison', 'summarise', 'write_curves',
+]
