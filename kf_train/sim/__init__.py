@@ -26,10 +26,11 @@ from kf_train.sim.rail_eval import HORIZON_S as RAIL_HORIZON_S
 from kf_train.sim.rail_eval import Score, Track, WARMUP_S as RAIL_WARMUP_S
 from kf_train.sim.rail_eval import score as score_predictions
 from kf_train.sim.rail_stream import RAIL_FAMILIES, rail_parameters, RailStream
+from kf_train.sim.sample import ScenarioSample
 from kf_train.sim.scenario_streams import (
     ACCELERATION_SCENARIOS, CAR_ACCELERATION_MPS2, CarStream, CONTROL_NAMES,
     DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
-    make_stream, ROBOT_SPEED_STD_MPS, RobotStream, SCENARIOS, ScenarioSample, TrainStream)
+    make_stream, ROBOT_SPEED_STD_MPS, RobotStream, SCENARIOS, TrainStream)
 from kf_train.sim.scenarios import (
     car_scenario, cv_position_scenario, cv_position_velocity_scenario, PRESET_SCENARIOS,
     range_bearing_scenario, robot_position_m, robot_scenario, Scenario, scenario_for_preset,

@@ -20,7 +20,7 @@ from typing import Optional, Sequence
 from kf_train.sim.rail import (  # the planner's steps: this module plans lazily
     _Plan, _plan_section, _streams, DEFAULT_FAMILY, family_parameters, RailParameters,
     RailRun)
-from kf_train.sim.scenario_streams import ScenarioSample
+from kf_train.sim.sample import ScenarioSample
 import numpy as np
 
 RAIL_FAMILIES = ('metro', 'regional')

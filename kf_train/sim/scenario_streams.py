@@ -30,10 +30,12 @@ docs/presets.md), or None.
   samples carry the true acceleration.
 """
 
-from typing import Mapping, NamedTuple, Optional
+from typing import Mapping, Optional
 
 from kf_train.filters import as_non_negative, as_positive, as_scalar
 from kf_train.presets import load_preset
+from kf_train.sim.rail_stream import DEFAULT_FAMILY, rail_parameters, RailStream
+from kf_train.sim.sample import ScenarioSample
 from kf_train.sim.scenarios import robot_position_m
 from kf_train.sim.simulation import TrainSimulation
 import numpy as np
@@ -56,20 +58,6 @@ CAR_ACCELERATION_MPS2 = 1.0
 """Seed 001's commanded acceleration."""
 ROBOT_SPEED_STD_MPS = 0.2
 """Seed 002's speed sensor σ."""
-
-
-class ScenarioSample(NamedTuple):
-    """One sample of a stream."""
-
-    index: int
-    t_s: float
-    true_position_m: float
-    true_velocity_mps: float
-    measured_position_m: float
-    control: Optional[float]
-    """The control of the interval that ends at t_s, or None without control input."""
-    true_acceleration_mps2: Optional[float] = None
-    """The true acceleration at t_s (ACCELERATION_SCENARIOS), else None."""
 
 
 def _sqrt_psd(Q: np.ndarray) -> np.ndarray:
@@ -205,8 +193,6 @@ def make_stream(scenario: str, rate_hz: float, seed: Optional[int], *,
     position = position if initial_position_m is None else initial_position_m
     velocity = velocity if velocity_mps is None else velocity_mps
     if scenario == 'rail':
-        # (rail_stream builds on this module's ScenarioSample: imported here.)
-        from kf_train.sim.rail_stream import DEFAULT_FAMILY, rail_parameters, RailStream
         rail = dict(rail or {})
         family = rail.pop('family', DEFAULT_FAMILY)
         seed = _rail_seed(seed)

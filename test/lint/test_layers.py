@@ -22,6 +22,7 @@ imports them.
 
 import ast
 import os
+import re
 from typing import Dict, List, Optional
 
 import pytest
@@ -273,3 +274,28 @@ def test_a_lazily_loaded_module_may_import_its_library_at_the_top():
     init = "_LAZY = ('bagio', 'bagio_output')\n"
     assert lazy_modules(init) == ['bagio', 'bagio_output']
     assert lazy_modules('__all__ = []\n') == []
+
+
+def readme_floors(readme: str) -> Dict[str, int]:
+    """Return {package: floor} as the README's drawing of the floors shows them."""
+    section = readme.split('## The floors', 1)[1].split('```text', 1)[1].split('```', 1)[0]
+    floors, floor = {}, None
+    for line in section.splitlines():
+        match = re.match(r'^ ?(\d)?\s+([a-z_]+)/\s', line + ' ')
+        if not match:
+            continue
+        if match.group(1):
+            floor = int(match.group(1))
+        floors[match.group(2)] = floor
+    return floors
+
+
+def test_the_readme_draws_the_floors_the_checker_enforces():
+    """README's drawing of the floors names exactly the packages and floors of FLOORS."""
+    with open(os.path.join(REPO, 'README.md'), encoding='utf-8') as stream:
+        drawn = readme_floors(stream.read())
+    drawn.pop(COMPATIBILITY, None)
+    assert drawn == FLOORS
+    # The parser reads what it is given: a drawing with a wrong floor differs.
+    assert readme_floors('## The floors\n```text\n 2  cli/   x\n    io/   y\n```\n') == {
+        'cli': 2, 'io': 2}
