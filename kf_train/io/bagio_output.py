@@ -33,6 +33,7 @@ from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
 from kf_train.io.bagio_types import (
     DIAGNOSTIC_LEVELS, DIAGNOSTICS, ODOMETRY, TYPESTORE, UNESTIMATED_VARIANCE, VECTOR3)
+from kf_train.io.paths import check_output_path
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -288,13 +289,9 @@ def _stamp_error(stamp_ns: int) -> ValueError:
 
 def _check_target(path: Path, single_file: bool) -> None:
     """Raise a one-line ValueError if the bag cannot be written at ``path``."""
-    parent = path.parent
-    if not parent.is_dir():
-        raise ValueError(f'cannot write {path}: directory {parent} does not exist')
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise ValueError(f'cannot write {path}: directory {parent} is not writable')
-    if single_file and path.is_dir():
-        raise ValueError(f'cannot write {path}: it is a directory')
+    # The checks every output shares (parent exists and is writable, a file is no
+    # directory), then the bag's own: a bag directory is never overwritten.
+    check_output_path(str(path), dataset=not single_file)
     if not single_file and path.exists():
         raise ValueError(f'cannot write {path}: it exists (a bag directory is never '
                          f'overwritten)')
