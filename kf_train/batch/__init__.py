@@ -31,7 +31,7 @@ from kf_train.batch.noise_checks import (
     ConsistencyReport, nis_consistency, prediction_errors, PredictionReport, whitened)
 from kf_train.batch.noise_likelihood import (
     Innovations, make_segment, NoiseSetting, noisy_preset, Segment, STATE_UNITS,
-    TUNING_INITIALIZATIONS, TuningProblem, VARIANCE_PARAMETERS)
+    TuningProblem, VARIANCE_PARAMETERS)
 from kf_train.batch.noise_parameters import (
     LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
 from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
@@ -62,6 +62,6 @@ __all__ = [
     'run_filter_series', 'run_linear_series', 'run_series', 'RunningNoiseEstimate', 'Segment',
     'SERIES_CALL_S', 'SeriesError', 'SeriesResult', 'smooth_series', 'SmootherResult',
     'STATE_UNITS', 'StreamingReplay', 'time_steps_s', 'TimeOrderError',
-    'TUNING_INITIALIZATIONS', 'TuningProblem', 'VARIANCE_PARAMETERS', 'VARIANCE_UNITS',
+    'TuningProblem', 'VARIANCE_PARAMETERS', 'VARIANCE_UNITS',
     'VECTORISED_MAX_STATES', 'whitened',
 ]

@@ -32,13 +32,12 @@ from typing import List, NamedTuple, Optional, Sequence, Tuple
 from kf_train.batch.linear import run_linear_series
 from kf_train.batch.series import SeriesResult, time_steps_s
 from kf_train.filters import as_finite_array, as_vector, LOG_2PI
-from kf_train.presets import is_constant_velocity, measured_states, Preset
+from kf_train.presets import INITIALIZATIONS, is_constant_velocity, measured_states, Preset
 import numpy as np
 
 # Node parameter of each measured quantity's variance (others have none).
 VARIANCE_PARAMETERS = {'position': 'measurement_variance',
                        'velocity': 'measurement_velocity_variance'}
-TUNING_INITIALIZATIONS = ('first_measurement', 'prior')
 """How a tuned filter starts: as the estimator node's ``initialization``."""
 STATE_UNITS = {'position': 'm', 'velocity': 'm/s'}
 
@@ -180,8 +179,8 @@ class TuningProblem:
         if not preset.linear:
             raise ValueError(f'preset {preset.name!r} has a nonlinear measurement model: '
                              'tuning needs a linear preset')
-        if initialization not in TUNING_INITIALIZATIONS:
-            raise ValueError(f'initialization must be one of {TUNING_INITIALIZATIONS}, '
+        if initialization not in INITIALIZATIONS:
+            raise ValueError(f'initialization must be one of {INITIALIZATIONS}, '
                              f'got {initialization!r}')
         self.selector = measured_states(preset)
         if initialization == 'first_measurement' and self.selector is None:

@@ -13,11 +13,9 @@ import os
 from typing import Dict, Sequence, Tuple, Union
 
 from kf_train.filters import as_covariance, as_vector
-# is_constant_velocity and measured_states live in presets/ (shared with batch/); they are
-# re-exported here for the settings.
-from kf_train.presets import (  # noqa: F401
-    is_constant_velocity, is_rail_preset_file, load_preset, load_preset_file, load_rail_preset,
-    measured_states, Preset, PRESET_NAMES, RAIL_PRESET_NAME, RailPreset)
+from kf_train.presets import (
+    is_rail_preset_file, load_preset, load_preset_file, load_rail_preset, Preset, PRESET_NAMES,
+    RAIL_PRESET_NAME, RailPreset)
 import numpy as np
 
 LivePreset = Union[Preset, RailPreset]

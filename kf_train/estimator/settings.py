@@ -13,14 +13,13 @@ from typing import Callable, Dict, NamedTuple, Optional, Tuple
 
 from kf_train.estimator.adapters import make_model
 from kf_train.estimator.live_presets import (
-    covariance_from_list, is_constant_velocity, is_rail, LivePreset, measured_states,
-    preset_defaults, resolve_preset)
+    covariance_from_list, is_rail, LivePreset, preset_defaults, resolve_preset)
 from kf_train.filters import (
     as_finite_array, as_vector, chi2_quantile, DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_KAPPA,
     DEFAULT_PARTICLES, DEFAULT_RESAMPLE_THRESHOLD, FILTER_KINDS, seconds_to_ns, StepModel)
+from kf_train.presets import INITIALIZATIONS, is_constant_velocity, measured_states
 import numpy as np
 
-INITIALIZATIONS = ('first_measurement', 'prior')
 DEFAULT_PRESET = 'rail'
 """The default preset: a real train (issue 11), not a seed tutorial."""
 DEFAULT_GATE_PROBABILITY = 0.9999

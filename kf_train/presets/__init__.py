@@ -13,12 +13,12 @@ from kf_train.presets.loader import (
 from kf_train.presets.rail import (
     is_rail_preset_file, load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_NAME,
     RAIL_PRESET_PATH, RailPreset)
-from kf_train.presets.structure import is_constant_velocity, measured_states
+from kf_train.presets.structure import INITIALIZATIONS, is_constant_velocity, measured_states
 
 __all__ = [
     'available_presets', 'ControlMatrix', 'DtExpression', 'Dynamics', 'load_preset',
     'load_preset_file', 'MOTIONS', 'Preset', 'PRESET_DIR', 'preset_from_mapping',
     'PRESET_NAMES', 'preset_path', 'is_rail_preset_file', 'load_rail_preset',
     'RAIL_PRESET_NAME', 'RAIL_PRESET_PATH', 'rail_preset_from_mapping', 'RailPreset',
-    'is_constant_velocity', 'measured_states',
+    'INITIALIZATIONS', 'is_constant_velocity', 'measured_states',
 ]

@@ -447,13 +447,18 @@ def _motion(value, states: Tuple[str, ...]) -> np.ndarray:
     raise ValueError(f"'motion' must be a name or {{A: matrix}}, got {value!r}")
 
 
-def _build(data: Mapping[str, Any], source: str) -> Preset:
-    """Validate ``data`` and build the preset; raise ValueError naming the key."""
+def check_keys(data, keys) -> None:
+    """Raise a ValueError unless ``data`` is a mapping whose keys are all in ``keys``."""
     if not isinstance(data, Mapping):
         raise ValueError(f'a preset must be a mapping of keys, got {type(data).__name__}')
-    unknown = sorted(str(k) for k in data if k not in _KEYS)
+    unknown = sorted(str(k) for k in data if k not in keys)
     if unknown:
-        raise ValueError(f"unknown key '{unknown[0]}'; the keys are {', '.join(sorted(_KEYS))}")
+        raise ValueError(f"unknown key '{unknown[0]}'; the keys are {', '.join(sorted(keys))}")
+
+
+def _build(data: Mapping[str, Any], source: str) -> Preset:
+    """Validate ``data`` and build the preset; raise ValueError naming the key."""
+    check_keys(data, _KEYS)
     name = _text(data, 'name')
     if not name:
         raise ValueError("'name' is required")

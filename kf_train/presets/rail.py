@@ -21,7 +21,7 @@ import os
 from typing import Any, Mapping, NamedTuple, Optional, Tuple
 
 from kf_train.filters import MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES
-from kf_train.presets.loader import PRESET_DIR, read_yaml_file
+from kf_train.presets.loader import check_keys, PRESET_DIR, read_yaml_file
 import numpy as np
 
 RAIL_PRESET_NAME = 'rail'
@@ -179,11 +179,7 @@ def _positive(key: str, value) -> float:
 
 def rail_preset_from_mapping(data: Mapping[str, Any], source: str = '<mapping>') -> RailPreset:
     """Return the rail preset a mapping (the parsed YAML) describes."""
-    if not isinstance(data, Mapping):
-        raise ValueError(f'a preset must be a mapping of keys, got {type(data).__name__}')
-    unknown = sorted(str(k) for k in data if k not in _KEYS)
-    if unknown:
-        raise ValueError(f"unknown key '{unknown[0]}'; the keys are {', '.join(sorted(_KEYS))}")
+    check_keys(data, _KEYS)
     expected = {'filter': 'imm', 'model': RAIL_MODEL_KEY, 'states': list(STATE_NAMES),
                 'measurements': ['position'], 'modes': list(MODE_NAMES)}
     for key, value in expected.items():

@@ -1,6 +1,8 @@
 """
 What a preset's model is, read from its names and matrices: one home for both floors.
 
+:data:`INITIALIZATIONS` are the two ways a preset's filter starts, live or in the fit.
+
 The live estimator's settings (:mod:`kf_train.estimator.settings`) and the noise fit
 (:mod:`kf_train.batch.noise_likelihood`) ask the same two questions of a preset, a
 :class:`~kf_train.presets.Preset` or a :class:`~kf_train.presets.RailPreset`.
@@ -11,6 +13,9 @@ from typing import Optional, Tuple, Union
 from kf_train.presets.loader import Preset
 from kf_train.presets.rail import RailPreset
 import numpy as np
+
+INITIALIZATIONS = ('first_measurement', 'prior')
+"""How a filter starts: from the first measurement, or from the preset's prior (x0, P0)."""
 
 
 def is_constant_velocity(preset: Union[Preset, RailPreset]) -> bool:
