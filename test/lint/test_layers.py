@@ -299,3 +299,34 @@ def test_the_readme_draws_the_floors_the_checker_enforces():
     # The parser reads what it is given: a drawing with a wrong floor differs.
     assert readme_floors('## The floors\n```text\n 2  cli/   x\n    io/   y\n```\n') == {
         'cli': 2, 'io': 2}
+
+
+CLI_MAX_LINES = 2500
+MODULE_MAX_LINES = 600
+FUNCTION_MAX_LINES = 80
+
+
+def oversized(path: str, source: str) -> List[str]:
+    """Return what in one module is over the size limits (the module, its functions)."""
+    found = []
+    if source.count('\n') > MODULE_MAX_LINES:
+        found.append(f'{path}: {source.count(chr(10))} lines (limit {MODULE_MAX_LINES})')
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            length = node.end_lineno - node.lineno + 1
+            if length > FUNCTION_MAX_LINES:
+                found.append(f'{path}:{node.lineno}: {node.name} is {length} lines '
+                             f'(limit {FUNCTION_MAX_LINES})')
+    return found
+
+
+def test_the_rooms_stay_small():
+    """The command line only parses and prints; no module or function grows past a page."""
+    found, cli_lines = [], 0
+    for package, path, source in _package_sources():
+        found += oversized(os.path.relpath(path, REPO), source)
+        cli_lines += source.count('\n') if package == 'cli' else 0
+    assert not found, '\n'.join(found)
+    assert cli_lines <= CLI_MAX_LINES, f'kf_train/cli/ holds {cli_lines} lines'
+    long_function = 'def f():\n' + '    x = 1\n' * FUNCTION_MAX_LINES
+    assert oversized('m.py', long_function) == ['m.py:1: f is 81 lines (limit 80)']
