@@ -72,7 +72,7 @@ from kf_train.ros.lifecycle import node_factory
 from kf_train.ros.param_spec import ParameterError
 from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.qos import OVERRIDES
-from kf_train.ros.runner import run, StartupError
+from kf_train.ros.runner import executor_option, run, StartupError
 from kf_train.ros.simulator_params import changed_config, PARAMETERS, simulator_config
 from kf_train.sim import ACCELERATION_SCENARIOS, CONTROL_NAMES, FaultInjector, make_stream
 from nav_msgs.msg import Odometry
@@ -254,8 +254,9 @@ class SimulatorNode(Node):
 
 
 def main(args=None) -> int:
-    """Run the simulator until Ctrl-C, SIGTERM or max_samples."""
-    return run(node_factory(SimulatorNode, args), args)
+    """Run the simulator until Ctrl-C, SIGTERM or max_samples (``--executor events``)."""
+    args, executor = executor_option(args)
+    return run(node_factory(SimulatorNode, args), args, executor=executor)
 
 
 if __name__ == '__main__':
