@@ -5,7 +5,8 @@
     python benchmarks/soak.py --duration 20 --json soak.json   # the CI-sized run
 
 Both nodes run as a user runs them (``simulator``/``estimator`` with ``--executor
-events``, the estimator's defaults but for its preset, which follows the scenario),
+events``, the estimator's defaults but for its preset, which follows the scenario, and
+``--qos-depth``, its measurement queue: 10 by default, ``make bench`` row 4 uses 1000),
 with a probe node (node_soak_probe.py) on ``measurement`` and ``estimate``. Every
 ``--sample-s`` the resident set size and CPU time of both nodes are read from /proc.
 At the end it prints the windows' latencies and one summary line:
@@ -77,6 +78,8 @@ def parse_args(argv: List[str]) -> argparse.Namespace:
     parser.add_argument('--executor', default='events', choices=('events', 'single_threaded'))
     parser.add_argument('--sample-s', type=float, default=0.0, help='RSS/CPU sample period')
     parser.add_argument('--window-s', type=float, default=0.0, help='latency window')
+    parser.add_argument('--qos-depth', type=int, default=0,
+                        help="estimator's qos_depth (0: its default, 10)")
     parser.add_argument('--json', default='', help='also write the results here')
     args = parser.parse_args(argv)
     args.sample_s = args.sample_s or min(max(args.duration / 360.0, 0.5), 10.0)
@@ -90,8 +93,9 @@ def run_soak(args: argparse.Namespace) -> dict:
     executor = ['--executor', args.executor]
     children = []
     try:
+        depth = ['-p', f'qos_depth:={args.qos_depth}'] if args.qos_depth else []
         estimator = Child(node_command('estimator') + executor + [
-            '--ros-args', '-p', f'preset:={args.scenario}'], env, 'estimator')
+            '--ros-args', '-p', f'preset:={args.scenario}'] + depth, env, 'estimator')
         children.append(estimator)
         probe = Child(helper('soak_probe', args.rate, args.window_s), env, 'probe')
         children.append(probe)
