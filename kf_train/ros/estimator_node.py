@@ -3,7 +3,9 @@ The ``estimator`` node: a Kalman filter on ``measurement``, estimates and predic
 
 Subscribes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped; QoS from
 ``qos_reliability``, best-effort by default so that it matches reliable and
-best-effort publishers, and ``qos_depth``, 10 by default). dt comes from the
+best-effort publishers, and ``qos_depth``, 10 by default; rclpy's
+``qos_overrides.<topic>.*`` parameters, on every topic, start from them:
+:mod:`kf_train.ros.qos`). dt comes from the
 message stamps, never from arrival times. After each fused measurement it publishes
 ``estimate`` (nav_msgs/Odometry, stamped with the newest fused stamp) and
 ``prediction`` (the state ``horizon_s`` ahead, stamped that stamp + horizon_s).
@@ -57,6 +59,15 @@ Robustness (see the core module for the exact rules):
   output (never published).
 * No fused measurement for ``timeout_s``: ``/diagnostics`` goes to WARN and the node
   logs it once (and again once measurements resume).
+
+Production (docs/ros.md): ``-p managed:=true`` makes it a managed (lifecycle) node
+(:mod:`kf_train.ros.lifecycle`); ``/diagnostics`` carries a second status, ``<node
+name>: inputs``, with each input topic's age (WARN/ERROR after ``stale_warn_periods``/
+``stale_error_periods`` expected periods of silence: :mod:`kf_train.ros.input_watch`)
+and incompatible QoS by topic and policy; ``stale_output`` stops or widens a stale
+estimate; the filter status carries ``gate_reach_m``, the smallest position jump the
+gate would reject now, and each gate rejection is logged at most once a second with
+its NIS.
 
 Other interfaces:
 

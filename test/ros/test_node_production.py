@@ -308,6 +308,20 @@ def test_gate_reach_is_in_diagnostics(ros_context, executor):
         return None
     assert spin_until(executor, lambda: reach() is not None)
     assert 0.0 < reach() < 1e3
+    lines = []
+
+    class Logger:
+        def warning(self, text, **options):
+            lines.append((text, options))
+
+        info = warning
+
+    node.get_logger = Logger
     count = node.rejected
-    probe.send(position_m=1e6)
-    assert spin_until(executor, lambda: node.rejected == count + 1)
+    for _ in range(2):
+        probe.send(position_m=1e6)
+    assert spin_until(executor, lambda: node.rejected == count + 2)
+    gated = [(text, options) for text, options in lines if text.startswith('gate rejected')]
+    assert len(gated) == 2, lines  # rclpy's logger throttles them: one a second
+    assert all(options == {'throttle_duration_sec': 1.0} for _, options in gated)
+    assert 'NIS' in gated[0][0] and f'{node.estimator.gate_threshold:.4g}' in gated[0][0]
