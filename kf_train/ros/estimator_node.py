@@ -415,7 +415,8 @@ class EstimatorNode(Node):
         # A stale control makes the estimate stale; a stale measurement makes none.
         self._withhold = options.stale_output == 'stop' and any(
             name != names[0] for name in stale)
-        if stale and options.stale_output == 'predict' and self.estimator.initialized:
+        if names[0] in stale and options.stale_output == 'predict' and \
+                self.estimator.initialized:
             self._publish_prediction_to_now()
         if changes:
             self._on_diagnostics_timer()

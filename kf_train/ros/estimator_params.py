@@ -223,8 +223,9 @@ PARAMETERS_NODE = (
             group=_G_NODE),
     ParamSpec('stale_output', 'string', 'stop',
               'While an input is stale (ERROR): stop (default) publishes no estimate or '
-              'prediction; predict publishes the estimate predicted to now (its covariance '
-              'widening) at every stale check.', choices=STALE_OUTPUTS, group=_G_NODE),
+              'prediction (a stale control withholds those of new measurements); predict '
+              'publishes, while the measurement is stale, the estimate predicted to now (its '
+              'covariance widening) at every stale check.', choices=STALE_OUTPUTS, group=_G_NODE),
     ParamSpec('reset_on_clock_jump', 'bool', True,
               'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
               'loop, a simulation reset).', group=_G_NODE),

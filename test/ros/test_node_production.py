@@ -258,6 +258,37 @@ def test_stale_output_predict_publishes_a_widening_estimate(ros_context, executo
     assert all(b > a for a, b in zip(variances, variances[1:])), variances
 
 
+def test_stale_control_withholds_the_estimate_until_it_returns(ros_context, executor):
+    """stale_output stop: with the car's control silent, new estimates are withheld."""
+    node = _start(executor, EstimatorNode(context=ros_context, parameter_overrides=_parameters(
+        {'preset': 'car', 'expected_period_s': 0.05, 'stale_warn_periods': 1.0,
+         'stale_error_periods': 2.0})))
+    probe = Probe(ros_context, executor)
+    kind, control_msg, _ = messages.CONTROL_MESSAGES['acceleration']
+    control_pub = probe.node.create_publisher(kind, 'control', QoSProfile(depth=100))
+    assert spin_until(executor, lambda: probe.pub.get_subscription_count() == 1
+                      and control_pub.get_subscription_count() == 1)
+
+    def send(with_control):
+        count = node.received
+        if with_control:
+            control_pub.publish(control_msg(probe.stamp_ns + PERIOD_NS, 'base_link', 1.0))
+        probe.send(position_m=1.0)
+        assert spin_until(executor, lambda: node.received == count + 1)
+
+    for _ in range(3):
+        send(with_control=True)
+    assert spin_until(executor, lambda: len(probe.estimates) == 3)
+    assert spin_until(executor, lambda: '/control' in node.watch.stale)
+    send(with_control=False)
+    spin_until(executor, lambda: False, timeout_s=0.2)
+    assert len(probe.estimates) == 3 and node.fused == 4  # fused, not published
+    send(with_control=True)
+    assert spin_until(executor, lambda: '/control' not in node.watch.stale)
+    send(with_control=True)
+    assert spin_until(executor, lambda: len(probe.estimates) >= 4)
+
+
 # -- the gate's reach -----------------------------------------------------------------------
 
 @pytest.mark.parametrize('preset', ['train', 'rail'])
