@@ -12,7 +12,8 @@ with a probe node (node_soak_probe.py) on ``measurement`` and ``estimate``. Ever
 At the end it prints the windows' latencies and one summary line:
 
 * RSS slope [MB/h] of each node: a least-squares line through the samples after the
-  warm-up (WARM_UP_FRACTION of the run, at most WARM_UP_S) (its standard error beside it: "flat" means the slope is within noise);
+  warm-up (WARM_UP_FRACTION of the run, at most WARM_UP_S), its standard error beside
+  it ("flat" means the slope is within noise);
 * dropped: samples the estimator never received (the simulator's count, from the
   probe's stamp sequence, minus the estimator's ``received``), and estimates lost
   on the way to the probe (gaps in their stamp sequence beyond those and the gate's
@@ -41,12 +42,12 @@ from bench_children import Child, Domains, helper, node_command
 
 DEFAULT_RATE_HZ = 1000.0
 STARTUP_TIMEOUT_S = 60.0
-DRAIN_S = 2.5
+DRAIN_S = 2.5  # after the simulator stops: the last estimates and a diagnostics status
 WARM_UP_FRACTION = 0.2
 WARM_UP_S = 600.0
 """The RSS slope leaves out the first 20 % of the run, at most 10 minutes: start-up,
 the first allocations and the allocator's arenas filling (in a 300-s run at 1 kHz the
-estimator's RSS rose 0.8 MB from 60 s to 200 s, then stayed flat to the end)."""  # after the simulator stops: the last estimates and a diagnostics status
+estimator's RSS rose 0.8 MB from 60 s to 200 s, then stayed flat to the end)."""
 
 
 def rss_mb(child: Child) -> float:
