@@ -89,7 +89,7 @@ def test_managed_requested_reads_the_command_line(tmp_path):
                                  'simulator')
     assert not managed_requested(['x', '--ros-args', '--params-file', str(params), '-p',
                                   'managed:=false'], 'estimator')
-    params.write_text("/**:\n  ros__parameters:\n    managed: true\n")  # as launch_ros writes
+    params.write_text('/**:\n  ros__parameters:\n    managed: true\n')  # as launch_ros writes
     assert managed_requested(['x', '--ros-args', '--params-file', str(params)], 'simulator')
     assert not managed_requested(['x', '--ros-args', '--params-file', '/nonexistent.yaml'],
                                  'estimator')
