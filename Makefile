@@ -11,6 +11,8 @@
 #   make ros2cli      install the `ros2` CLI and launch wheels from $(ROS2CLI_WHEELS)
 #                     into $(VENV) (when that folder exists, `make test` does it first)
 #   make constraints  refresh constraints.txt from a fresh resolve (see docs/testing.md)
+#   make soak         both nodes at 1 kHz for $(SOAK_S) s (default 3600): RSS slope,
+#                     drops, latency over time, CPU, NaN (benchmarks/soak.py)
 #   make demo / bench / clean / distclean
 #
 # Every install goes through constraints.txt (pip -c): the exact versions of every
@@ -50,7 +52,7 @@ ROS2CLI_PACKAGES = rosidl_runtime_py ros2cli ros2action ros2component ros2doctor
 # `make test` installs them first when the folder is there.
 TEST_PREREQUISITES = colcon $(if $(wildcard $(ROS2CLI_WHEELS)/ros2cli-*.whl),ros2cli)
 
-.PHONY: setup venv demo test test-core test-noros lint colcon ros2cli constraints bench \
+.PHONY: setup venv demo test test-core test-noros lint colcon ros2cli constraints bench soak \
 	clean distclean
 
 REQUIREMENTS := requirements-ros.txt requirements-test.txt requirements-dev.txt
@@ -141,6 +143,10 @@ colcon: setup
 
 bench: setup
 	$(PY) benchmarks/bench.py
+
+SOAK_S ?= 3600
+soak: setup
+	$(PY) benchmarks/soak.py --duration $(SOAK_S)
 
 clean:
 	rm -rf build/ install/ log/ *.egg-info

@@ -14,6 +14,8 @@ The launch arguments:
   stamps use the recorded time, and a bag loop (the clock jumping back) resets the
   filter. Set it to false for a live sensor.
 * ``preset``: the filter (default: the params file's, the train when it names none).
+* ``managed``: true starts the estimator as a managed (lifecycle) node, ``unconfigured``
+  (docs/ros.md); empty (default): the params file's ``managed``.
 * ``measurement_topic`` / ``control_topic``: remap ``measurement`` and ``control``
   (the control only for presets with one: car, robot and their -exact variants).
 """
@@ -36,8 +38,8 @@ def _estimator(context):
     use_sim_time = launch_params.parse_bool('use_sim_time', argument('use_sim_time'))
     return [Node(
         package='kf_train', executable='estimator', namespace=namespace, output='screen',
-        parameters=[launch_params.estimator_parameters(
-            params, namespace, argument('preset'), use_sim_time)],
+        parameters=[launch_params.with_managed(launch_params.estimator_parameters(
+            params, namespace, argument('preset'), use_sim_time), argument('managed'))],
         remappings=[('measurement', argument('measurement_topic')),
                     ('control', argument('control_topic'))])]
 
@@ -61,5 +63,9 @@ def generate_launch_description():
                               description='Topic of the measurements'),
         DeclareLaunchArgument('control_topic', default_value='control',
                               description='Topic of the control input (presets with one)'),
+        DeclareLaunchArgument('managed', default_value='',
+                              choices=['', 'true', 'false', 'True', 'False'],
+                              description='Start as managed (lifecycle) nodes, unconfigured; '
+                              "empty: the params file's"),
         OpaqueFunction(function=_estimator),
     ])

@@ -15,6 +15,9 @@ The launch arguments:
   sections apply to the namespaced nodes too (see kf_train/ros/launch_params.py).
 * ``use_sim_time``: both nodes follow ``/clock`` (published by e.g. Gazebo); the
   simulator then also samples on that clock.
+* ``managed``: true starts both nodes as managed (lifecycle) nodes, ``unconfigured``:
+  drive them with ``ros2 lifecycle set`` or Nav2's lifecycle manager (docs/ros.md).
+  Empty (default): the params file's ``managed`` (false in the installed one).
 * ``scenario``: what the simulator simulates; ``preset``: the estimator's filter,
   by default the scenario's (every scenario is a preset of the same name). Empty:
   the params file's (the train when it names none). Choosing another one than the
@@ -39,13 +42,16 @@ def _nodes(context):
     use_sim_time = launch_params.parse_bool('use_sim_time', argument('use_sim_time'))
     scenario = argument('scenario')
     preset = argument('preset') or scenario
+    managed = argument('managed')
     return [
         Node(package='kf_train', executable='simulator', namespace=namespace,
-             output='screen', parameters=[launch_params.simulator_parameters(
-                 params, namespace, scenario, use_sim_time)]),
+             output='screen', parameters=[launch_params.with_managed(
+                 launch_params.simulator_parameters(params, namespace, scenario,
+                                                    use_sim_time), managed)]),
         Node(package='kf_train', executable='estimator', namespace=namespace,
-             output='screen', parameters=[launch_params.estimator_parameters(
-                 params, namespace, preset, use_sim_time)]),
+             output='screen', parameters=[launch_params.with_managed(
+                 launch_params.estimator_parameters(params, namespace, preset, use_sim_time),
+                 managed)]),
     ]
 
 
@@ -68,5 +74,9 @@ def generate_launch_description():
         DeclareLaunchArgument('preset', default_value='',
                               description="The estimator's preset (or a preset .yaml "
                               "path); empty: the scenario's, else the params file's"),
+        DeclareLaunchArgument('managed', default_value='',
+                              choices=['', 'true', 'false', 'True', 'False'],
+                              description='Start as managed (lifecycle) nodes, unconfigured; '
+                              "empty: the params file's"),
         OpaqueFunction(function=_nodes),
     ])

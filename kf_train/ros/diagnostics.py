@@ -106,6 +106,36 @@ def filter_status(estimator, counts: NodeCounts, activity: Activity, timeout_s: 
     return FilterStatus('OK', message, values, timeout_warning)
 
 
+def gate_reach_m(estimator, now_ns: int, variances: Sequence[float]) -> float:
+    """
+    Return the smallest position jump the gate would reject now [m] (inf: no gate).
+
+    With S the innovation covariance of a measurement at ``now_ns`` (in the stamps'
+    time base; the newest stamp if that is later) and R from a message's
+    ``variances`` as the node fuses them, a jump d of the position alone from the
+    predicted one has NIS d² (S⁻¹)₀₀, so the gate (NIS > threshold) rejects it from
+    d = sqrt(threshold / (S⁻¹)₀₀): sqrt(threshold · S) for a position. The measured
+    states are the first ones (position, then velocity). For a model with regimes (the
+    rail IMM) S is its mixture's, from the model's own pure fused step (S does not
+    depend on z); for the others the state's look-ahead (what predict_to publishes).
+    Nothing changes.
+    """
+    threshold = estimator.gate_threshold
+    if not math.isfinite(threshold):
+        return math.inf
+    R = estimator.measurement_noise(*variances)
+    m = R.shape[0]
+    stamp_ns = max(now_ns, estimator.last_stamp_ns)
+    if regime_names(estimator):
+        x, P = estimator.state
+        dt_s = (stamp_ns - estimator.last_stamp_ns) / 1e9
+        S = estimator.model.predict_update(x, P, dt_s, np.zeros(m), R)[2].innovation_covariance
+    else:
+        _, P = estimator.predict_to(stamp_ns)
+        S = P[:m, :m] + R
+    return math.sqrt(threshold / float(np.linalg.inv(S)[0, 0]))
+
+
 def condition_number(P) -> float:
     """Return ``np.linalg.cond(P)``: its SVD and division, without its overheads (~8 µs)."""
     s = np.linalg.svd(P, compute_uv=False).tolist()

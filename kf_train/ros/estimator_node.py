@@ -3,7 +3,9 @@ The ``estimator`` node: a Kalman filter on ``measurement``, estimates and predic
 
 Subscribes ``measurement`` (geometry_msgs/PoseWithCovarianceStamped; QoS from
 ``qos_reliability``, best-effort by default so that it matches reliable and
-best-effort publishers, and ``qos_depth``, 10 by default). dt comes from the
+best-effort publishers, and ``qos_depth``, 10 by default; rclpy's
+``qos_overrides.<topic>.*`` parameters, on every topic, start from them:
+:mod:`kf_train.ros.qos`). dt comes from the
 message stamps, never from arrival times. After each fused measurement it publishes
 ``estimate`` (nav_msgs/Odometry, stamped with the newest fused stamp) and
 ``prediction`` (the state ``horizon_s`` ahead, stamped that stamp + horizon_s).
@@ -58,6 +60,15 @@ Robustness (see the core module for the exact rules):
   output (never published).
 * No fused measurement for ``timeout_s``: ``/diagnostics`` goes to WARN and the node
   logs it once (and again once measurements resume).
+
+Production (docs/ros.md): ``-p managed:=true`` makes it a managed (lifecycle) node
+(:mod:`kf_train.ros.lifecycle`); ``/diagnostics`` carries a second status, ``<node
+name>: inputs``, with each input topic's age (WARN/ERROR after ``stale_warn_periods``/
+``stale_error_periods`` expected periods of silence: :mod:`kf_train.ros.input_watch`)
+and incompatible QoS by topic and policy; ``stale_output`` stops or widens a stale
+estimate; the filter status carries ``gate_reach_m``, the smallest position jump the
+gate would reject now, and each gate rejection is logged at most once a second with
+its NIS.
 
 Other interfaces:
 
@@ -125,12 +136,15 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.estimator import NS_PER_S
-from kf_train.ros import messages
-from kf_train.ros.diagnostics import MATCHED_KEYS, regime_names, STATUS_SUFFIX
+from kf_train.ros import input_watch, messages
+from kf_train.ros.diagnostics import gate_reach_m, MATCHED_KEYS, regime_names, STATUS_SUFFIX
 from kf_train.ros.estimator_params import (
     changed_config, DEFAULTS, estimator_config, FRAME_PARAMETERS, PARAMETERS)
+from kf_train.ros.input_watch import InputWatch, watch_period_s
+from kf_train.ros.lifecycle import node_factory
 from kf_train.ros.param_spec import ParameterError
 from kf_train.ros.parameters import declare_table, watch_changes
+from kf_train.ros.qos import OVERRIDES, publisher_events, subscription_events
 from kf_train.ros.runner import executor_option, run, StartupError
 from kf_train.ros.session import EstimatorSession, Measurement
 from nav_msgs.msg import Odometry
@@ -151,9 +165,18 @@ QOS_RELIABILITIES = {'best_effort': ReliabilityPolicy.BEST_EFFORT,
 class EstimatorNode(Node):
     """Estimates the train's (or a preset's) position and velocity, predicts them ahead."""
 
+    NODE_NAME = 'estimator'
+    GATED_CALLBACKS = ('_on_measurement', '_on_control', '_on_set_state',
+                       '_on_diagnostics_timer', '_on_watch_timer')
+    """What a managed node runs only while active (kf_train.ros.lifecycle)."""
+
     def __init__(self, **kwargs):
         """Declare the parameters, build the filter and wire the topics."""
-        super().__init__('estimator', **kwargs)
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.configure()
+
+    def configure(self) -> None:
+        """Declare and check the parameters, build the filter, create the interfaces."""
         try:
             self.session = EstimatorSession(estimator_config(declare_table(self, PARAMETERS)),
                                             time.monotonic, self._log)
@@ -165,8 +188,8 @@ class EstimatorNode(Node):
         self.preset = self.session.preset
         self._last_diagnostics = None
         self._create_interfaces()
-        watch_changes(self, lambda changes: changed_config(self.config, changes),
-                      self._apply_changes)
+        self._unwatch = watch_changes(
+            self, lambda changes: changed_config(self.config, changes), self._apply_changes)
 
     # What the session counts, under the names the node has always had.
     config = property(lambda self: self.session.config)
@@ -199,8 +222,9 @@ class EstimatorNode(Node):
             self.get_logger().warning(text)
 
     def _create_interfaces(self) -> None:
-        """Create the subscriptions, publishers, service and diagnostics timer."""
+        """Create the subscriptions, publishers, service and timers."""
         options = self.config.options
+        # qos_reliability and qos_depth make the profile rclpy's qos_overrides.* start from.
         qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=options.qos_depth,
                          reliability=QOS_RELIABILITIES[options.qos_reliability])
         # Outgoing messages are filled in place (messages.EstimateWriter): per message
@@ -210,37 +234,56 @@ class EstimatorNode(Node):
         self._prediction_writer = messages.EstimateWriter(
             options.frame_id, options.child_frame_id, self.preset.dim_x)
         self._innovation_writer = messages.InnovationWriter(options.frame_id)
+        inputs = ['measurement'] + (['control'] if self.preset.control_names else [])
+        self.watch = InputWatch([self.resolve_topic_name(name) for name in inputs])
+        self._withhold = False
+        self._last_measurement = None
         self.control_subscription = None
         if self.preset.control_names:
             # Created before the measurement subscription: when a control and its
             # measurement are both waiting, the executor takes the control first.
             control = self.preset.control_names[0]
             kind, _, self._read_control = messages.CONTROL_MESSAGES[control]
-            self.control_subscription = self.create_subscription(
-                kind, 'control', self._on_control, qos)
+            self.control_subscription = self._subscribe(kind, 'control', self._on_control, qos)
         self.measures_velocity = self.session.measures_velocity
         # A position measurement arrives serialised and only its four fields are read
         # (messages.measurement_from_serialized): rclpy's deserialisation would cost
         # more than the whole filter step.
-        self.subscription = self.create_subscription(
+        self.subscription = self._subscribe(
             Odometry if self.measures_velocity else PoseWithCovarianceStamped,
             'measurement', self._on_measurement, qos, raw=not self.measures_velocity)
-        self.estimate_pub = self.create_publisher(Odometry, 'estimate', QOS_DEPTH)
-        self.prediction_pub = self.create_publisher(Odometry, 'prediction', QOS_DEPTH)
-        self.innovation_pub = self.create_publisher(Vector3Stamped, 'innovation', QOS_DEPTH)
+        self.estimate_pub = self._publisher(Odometry, 'estimate')
+        self.prediction_pub = self._publisher(Odometry, 'prediction')
+        self.innovation_pub = self._publisher(Vector3Stamped, 'innovation')
         self.regime_names = regime_names(self.estimator)
         self.regime_pub = None
         if self.regime_names:
-            self.regime_pub = self.create_publisher(Float64MultiArray, 'regime_probabilities',
-                                                    QOS_DEPTH)
-        self.diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
-                                                     QOS_DEPTH)
-        self.set_state_subscription = self.create_subscription(
+            self.regime_pub = self._publisher(Float64MultiArray, 'regime_probabilities')
+        self.diagnostics_pub = self._publisher(DiagnosticArray, '/diagnostics')
+        self.set_state_subscription = self._subscribe(
             Odometry, '~/set_state', self._on_set_state, QOS_DEPTH)
         self.reset_service = self.create_service(Trigger, '~/reset', self._on_reset_request)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._diagnostics_timer = self.create_timer(
-            options.diagnostics_period_s, self._on_diagnostics_timer,
-            clock=Clock(clock_type=ClockType.STEADY_TIME))
+            options.diagnostics_period_s, self._on_diagnostics_timer, clock=steady)
+        self._watch_timer = self.create_timer(
+            watch_period_s(self._expected_period_s()), self._on_watch_timer, clock=steady)
+
+    def _subscribe(self, kind, topic: str, callback, qos, raw: bool = False):
+        """Create a subscription with QoS overrides and its mismatches reported."""
+        return self.create_subscription(
+            kind, topic, callback, qos, raw=raw, qos_overriding_options=OVERRIDES,
+            event_callbacks=subscription_events(self, topic, self.watch.add_qos_incompatible))
+
+    def _publisher(self, kind, topic: str):
+        """Create a publisher with QoS overrides and its mismatches reported."""
+        return self.create_publisher(
+            kind, topic, QOS_DEPTH, qos_overriding_options=OVERRIDES,
+            event_callbacks=publisher_events(self, topic, self.watch.add_qos_incompatible))
+
+    def _expected_period_s(self) -> float:
+        """Return the expected period of the inputs: the parameter, else the preset's."""
+        return self.config.options.expected_period_s or self.config.values['nominal_period_s']
 
     # -- parameters -------------------------------------------------------------------
 
@@ -252,6 +295,10 @@ class EstimatorNode(Node):
             self._diagnostics_timer.timer_period_ns = int(
                 options.diagnostics_period_s * NS_PER_S)
             self._diagnostics_timer.reset()
+        if options.expected_period_s != old.options.expected_period_s:
+            self._watch_timer.timer_period_ns = int(
+                watch_period_s(self._expected_period_s()) * NS_PER_S)
+            self._watch_timer.reset()
         if any(getattr(options, name) != getattr(old.options, name)
                for name in FRAME_PARAMETERS):
             for writer in (self._estimate_writer, self._prediction_writer):
@@ -270,6 +317,7 @@ class EstimatorNode(Node):
         else:
             measurement = (messages.measurement_from_serialized(msg) if type(msg) is bytes
                            else messages.from_measurement_msg(msg))
+        self._last_measurement = measurement  # its variances: the gate's reach
         self._publish(self.session.on_measurement(measurement,
                                                   self.get_clock().now().nanoseconds))
 
@@ -283,7 +331,7 @@ class EstimatorNode(Node):
         # A topic nobody subscribes to is not published: a publish costs ~20 µs, the
         # count ~1 µs, and a message without a matched reader would go nowhere anyway.
         step = outputs.step
-        if step is not None:
+        if step is not None and not self._withhold:
             if self.estimate_pub.get_subscription_count():
                 self.estimate_pub.publish(
                     self._estimate_writer.fill(step.stamp_ns, step.x, step.P))
@@ -295,6 +343,12 @@ class EstimatorNode(Node):
                 if regimes is not None:
                     self.regime_pub.publish(messages.to_regime_msg(*regimes))
         update = outputs.update
+        if update is not None and step is None:
+            self.get_logger().warning(
+                f'gate rejected the measurement at {outputs.innovation_stamp_ns} ns: NIS '
+                f'{update.nis:.4g} > {self.estimator.gate_threshold:.4g} (innovation '
+                f'{update.innovation[0]:.4g} m); at most one such line a second',
+                throttle_duration_sec=1.0)
         if update is not None and self.innovation_pub.get_subscription_count():
             self.innovation_pub.publish(self._innovation_writer.fill(
                 outputs.innovation_stamp_ns, update.innovation[0],
@@ -318,14 +372,67 @@ class EstimatorNode(Node):
     # -- diagnostics --------------------------------------------------------------------
 
     def _on_diagnostics_timer(self) -> None:
-        """Publish /diagnostics and say once when measurements stop."""
-        status = self.session.diagnostics(self.get_clock().now().nanoseconds)
+        """Publish /diagnostics (filter and inputs) and say once when measurements stop."""
+        now_ns = self.get_clock().now().nanoseconds
+        status = self.session.diagnostics(now_ns)
         msg = messages.to_diagnostics_msg(
             self.get_clock().now().nanoseconds, f'{self.get_name()}: {STATUS_SUFFIX}',
             'kf_train', status.level, status.message,
-            list(status.values) + self._matched_values())
+            list(status.values) + self._matched_values() + self._reach_values())
+        inputs = self.watch.status(time.monotonic(), self._expected_period_s())
+        msg.status += messages.to_diagnostics_msg(
+            now_ns, f'{self.get_name()}: {input_watch.STATUS_SUFFIX}', 'kf_train',
+            inputs.level, inputs.message, inputs.values).status
         self._last_diagnostics = msg
         self.diagnostics_pub.publish(msg)
+
+    def _reach_values(self):
+        """Return the gate's reach now (gate_reach_m), when there is a state and an R."""
+        measurement = self._last_measurement
+        # "Now" in the stamps' time base: the newest stamp plus its age on the steady
+        # clock (a bag's or a simulation's stamps need not be near the node clock).
+        now_ns = self.session.newest_stamp_now_ns()
+        if measurement is None or now_ns is None or not self.estimator.initialized:
+            return []
+        variances = ((measurement.variance_m2, measurement.velocity_variance_m2s2)
+                     if self.measures_velocity else (measurement.variance_m2,))
+        return [('gate_reach_m', f'{gate_reach_m(self.estimator, now_ns, variances):.6g}')]
+
+    def _on_watch_timer(self) -> None:
+        """Check the inputs for silence; log changes; withhold or widen a stale estimate."""
+        options = self.config.options
+        names = self.watch.topics
+        counts = {names[0]: self.session.received}
+        if len(names) > 1:
+            counts[names[1]] = self.session.controls_received
+        changes = self.watch.check(counts, time.monotonic(), self._expected_period_s(),
+                                   options.stale_warn_periods, options.stale_error_periods)
+        for _, level, line in changes:
+            if level == 'OK':
+                self.get_logger().info(line)
+            else:
+                self.get_logger().warning(line)
+        stale = self.watch.stale
+        # A stale control makes the estimate stale; a stale measurement makes none.
+        self._withhold = options.stale_output == 'stop' and any(
+            name != names[0] for name in stale)
+        if names[0] in stale and options.stale_output == 'predict' and \
+                self.estimator.initialized:
+            self._publish_prediction_to_now()
+        if changes:
+            self._on_diagnostics_timer()
+
+    def _publish_prediction_to_now(self) -> None:
+        """Publish the estimate predicted to now and its prediction (stale_output predict)."""
+        # Now in the stamps' time base (see _reach_values).
+        now_ns = self.session.newest_stamp_now_ns()
+        if now_ns is None:
+            return
+        horizon_ns = round(self.config.values['horizon_s'] * NS_PER_S)
+        x, P = self.estimator.predict_to(now_ns)
+        self.estimate_pub.publish(self._estimate_writer.fill(now_ns, x, P))
+        x, P = self.estimator.predict_to(now_ns + horizon_ns)
+        self.prediction_pub.publish(self._prediction_writer.fill(now_ns + horizon_ns, x, P))
 
     def _matched_values(self):
         """Return the DDS endpoints matched on this node's side (MATCHED_KEYS)."""
@@ -340,7 +447,7 @@ class EstimatorNode(Node):
 def main(args=None) -> int:
     """Run the estimator until Ctrl-C or SIGTERM (``--executor events``: see runner.py)."""
     args, executor = executor_option(args)
-    return run(EstimatorNode, args, executor=executor)
+    return run(node_factory(EstimatorNode, args), args, executor=executor)
 
 
 if __name__ == '__main__':

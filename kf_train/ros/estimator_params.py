@@ -19,9 +19,12 @@ from kf_train.estimator import (
     PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, RESTART_AFTER_STALE_RANGE,
     UKF_ALPHA_RANGE, UKF_BETA_RANGE, UKF_KAPPA_RANGE)
 from kf_train.filters import FILTER_KINDS
-from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
+from kf_train.ros.param_spec import (
+    BIG, MANAGED_DESCRIPTION, ParameterError, ParamSpec, ParamTable)
 
 QOS_RELIABILITIES = ('best_effort', 'reliable')
+STALE_OUTPUTS = ('stop', 'predict')
+"""What a stale state does to estimate and prediction (parameter stale_output)."""
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
                             'measurement_velocity_variance', 'gate_probability'))
@@ -99,6 +102,7 @@ PARAMETERS_FIXED = (
              'History depth of the measurement and control subscriptions (messages queued '
              'while the node is busy). Fixed at start-up.', (1, 100_000), live=False,
              group=_G_FIXED),
+    ParamSpec('managed', 'bool', False, MANAGED_DESCRIPTION, live=False, group=_G_FIXED),
 )
 
 PARAMETERS_AT_INIT = (
@@ -205,6 +209,23 @@ PARAMETERS_NODE = (
              'window; shown from 30 on, with which way and how far to move q). 0 turns '
              'it off; below 10 counts as 10. Presets without q (robot) never show it.',
              (0, 3000), group=_G_NODE),
+    _double('expected_period_s', 0.0,
+            'Expected period of each input topic (measurement, and control for presets with '
+            "one) [s]; 0: the preset's nominal_period_s. Watched on the steady clock once the "
+            'topic has delivered a message.', (0.0, 3600.0), 's', group=_G_NODE),
+    _double('stale_warn_periods', 3.0,
+            'After this many expected periods without a message on an input topic, '
+            '/diagnostics (status <node>: inputs) goes to WARN naming the topic and its age.',
+            (1.0, 1e6), group=_G_NODE),
+    _double('stale_error_periods', 10.0,
+            'After this many expected periods without a message, ERROR (at least '
+            'stale_warn_periods); back to OK when messages return.', (1.0, 1e6),
+            group=_G_NODE),
+    ParamSpec('stale_output', 'string', 'stop',
+              'While an input is stale (ERROR): stop (default) publishes no estimate or '
+              'prediction (a stale control withholds those of new measurements); predict '
+              'publishes, while the measurement is stale, the estimate predicted to now (its '
+              'covariance widening) at every stale check.', choices=STALE_OUTPUTS, group=_G_NODE),
     ParamSpec('reset_on_clock_jump', 'bool', True,
               'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
               'loop, a simulation reset).', group=_G_NODE),
@@ -241,8 +262,13 @@ class NodeOptions(NamedTuple):
     nis_window: int
     noise_suggestion_window: int
     reset_on_clock_jump: bool
+    expected_period_s: float
+    stale_warn_periods: float
+    stale_error_periods: float
+    stale_output: str
     qos_reliability: str
     qos_depth: int
+    managed: bool
 
 
 class EstimatorConfig(NamedTuple):
@@ -271,6 +297,10 @@ def estimator_config(values: Mapping[str, Any]) -> EstimatorConfig:
     for name in FRAME_PARAMETERS:
         if not values[name]:
             raise ParameterError(f'{name} must not be empty')
+    if values['stale_error_periods'] < values['stale_warn_periods']:
+        raise ParameterError('stale_error_periods ({:g}) must be at least stale_warn_periods '
+                             '({:g})'.format(values['stale_error_periods'],
+                                             values['stale_warn_periods']))
     return EstimatorConfig(settings, NodeOptions(**{name: values[name]
                                                     for name in NodeOptions._fields}), values)
 

@@ -89,6 +89,13 @@ def parse_bool(name: str, text: str) -> bool:
     raise ValueError(f'launch argument {name}:={text!r} must be true or false')
 
 
+def with_managed(values: Dict[str, object], text: str) -> Dict[str, object]:
+    """Return a node's ``values`` with the launch argument ``managed`` ('': the file's)."""
+    if str(text).strip():
+        values = dict(values, managed=parse_bool('managed', text))
+    return values
+
+
 def simulator_parameters(params: dict, namespace: str, scenario: str,
                          use_sim_time: bool) -> Dict[str, object]:
     """Return the simulator's parameters: its file sections, the scenario, use_sim_time."""

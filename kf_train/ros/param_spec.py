@@ -38,8 +38,22 @@ PARAM_REL_TOL = 1e-6
 """rclpy's Node.PARAM_REL_TOL: a double this close (relatively) to a bound is on it."""
 IMPLICIT_PARAMETERS = frozenset(('use_sim_time', 'start_type_description_service'))
 """Parameters rclpy declares on every node: accepted in params files, not in a table."""
+QOS_OVERRIDES_PREFIX = 'qos_overrides.'
+"""rclpy's QoS override parameters (``qos_overrides./TOPIC.subscription.reliability``...),
+declared with each publisher and subscription: implicit too."""
+MANAGED_DESCRIPTION = (
+    'Run as a managed (lifecycle) node: it starts unconfigured, configure declares and '
+    'checks the parameters, activate starts it (ros2 lifecycle set; docs/ros.md). Read '
+    'from the command line (-p managed:=true) or a params file before the node exists. '
+    'Fixed at start-up.')
+"""The ``managed`` parameter's description (both nodes: kf_train.ros.lifecycle)."""
 TYPES = ('bool', 'integer', 'double', 'string', 'double_array')
 """The parameter types the tables use (ROS: BOOL, INTEGER, DOUBLE, STRING, DOUBLE_ARRAY)."""
+
+
+def is_implicit(name: str) -> bool:
+    """Return whether rclpy declares ``name`` itself (not a table's parameter)."""
+    return name in IMPLICIT_PARAMETERS or name.startswith(QOS_OVERRIDES_PREFIX)
 
 
 class ParameterError(ValueError):
@@ -247,7 +261,7 @@ class ParamTable:
         the choices. Raises ParameterError with the node's text.
         """
         for name in values:
-            if name not in IMPLICIT_PARAMETERS:
+            if not is_implicit(name):
                 self.spec(name)
         defaults = self.defaults(values.get(self.key) if self.key else None)
         result = {spec.name: check_value(spec, values.get(spec.name, defaults[spec.name]))
@@ -258,8 +272,7 @@ class ParamTable:
 
     def changed(self, values: Mapping[str, Any], changes: Mapping[str, Any]) -> Dict[str, Any]:
         """Return ``values`` with ``changes``, refusing read-only ones as rclpy does."""
-        changes = {name: value for name, value in changes.items()
-                   if name not in IMPLICIT_PARAMETERS}
+        changes = {name: value for name, value in changes.items() if not is_implicit(name)}
         for name, value in changes.items():
             spec = self.spec(name)
             if not spec.live and value != values[name]:

@@ -10,7 +10,7 @@ whole without side effects, and the post-set callback applies it.
 
 from typing import Any, Callable, Dict
 
-from kf_train.ros.param_spec import ParameterError, ParamSpec, ParamTable
+from kf_train.ros.param_spec import is_implicit, ParameterError, ParamSpec, ParamTable
 from rcl_interfaces.msg import (
     FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult)
 from rclpy.node import Node
@@ -52,19 +52,23 @@ def declare_table(node: Node, table: ParamTable) -> Dict[str, Any]:
 
 
 def _declare(node: Node, spec: ParamSpec, default) -> Any:
-    """Declare one parameter; return its value (arrays as lists)."""
-    value = node.declare_parameter(spec.name, default, descriptor(spec)).value
+    """Declare one parameter (a managed node's re-configure: read it); return its value."""
+    if node.has_parameter(spec.name):
+        value = node.get_parameter(spec.name).value
+    else:
+        value = node.declare_parameter(spec.name, default, descriptor(spec)).value
     return list(value) if spec.type == 'double_array' else value
 
 
 def watch_changes(node: Node, validate: Callable[[Dict[str, Any]], Any],
-                  apply: Callable[[Dict[str, Any]], None]) -> None:
+                  apply: Callable[[Dict[str, Any]], None]) -> Callable[[], None]:
     """
     Validate parameter changes with ``validate`` and apply them with ``apply``.
 
     ``validate(changes)`` must have no side effects and raise ParameterError for an
     invalid change (its reason is the answer; the old values stay); ``apply(changes)``
     runs once rclpy has stored the new values. ``changes`` maps name to new value.
+    Returns a function that removes both callbacks again (a managed node's cleanup).
     """
     def on_set(parameters) -> SetParametersResult:
         try:
@@ -73,11 +77,20 @@ def watch_changes(node: Node, validate: Callable[[Dict[str, Any]], Any],
             return SetParametersResult(successful=False, reason=error.reason)
         return SetParametersResult(successful=True)
 
+    def on_post_set(parameters) -> None:
+        apply(_changes(parameters))
+
     node.add_on_set_parameters_callback(on_set)
-    node.add_post_set_parameters_callback(lambda parameters: apply(_changes(parameters)))
+    node.add_post_set_parameters_callback(on_post_set)
+
+    def unwatch() -> None:
+        node.remove_on_set_parameters_callback(on_set)
+        node.remove_post_set_parameters_callback(on_post_set)
+    return unwatch
 
 
 def _changes(parameters) -> Dict[str, Any]:
-    """Return {name: value} of a parameter list (arrays as lists)."""
+    """Return {name: value} of a parameter list (arrays as lists; rclpy's own left out)."""
     return {parameter.name: list(parameter.value) if type(parameter.value).__name__ in (
-        'array', 'tuple') else parameter.value for parameter in parameters}
+        'array', 'tuple') else parameter.value for parameter in parameters
+        if not is_implicit(parameter.name)}

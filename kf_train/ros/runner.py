@@ -67,7 +67,7 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
         return EXIT_OK
     except (InvalidParameterValueException, InvalidParameterTypeException,
             ParameterError, StartupError) as error:
-        print(f'error: {_one_line(error)}', file=sys.stderr)
+        print(f'error: {one_line(error)}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     finally:
         if isinstance(executor, SingleThreadedExecutor):
@@ -129,7 +129,7 @@ _WRONG_TYPE = re.compile(r"Trying to set parameter '(?P<name>[^']+)' to '(?P<val
                          r"type '(?P<got>\w+)', expecting type '(?P<want>\w+)'")
 
 
-def _one_line(error: Exception) -> str:
+def one_line(error: Exception) -> str:
     """Return an exception's text on one line, naming the parameter and what it accepts."""
     text = ' '.join(str(error).split())
     match = _OUT_OF_RANGE.search(text)
@@ -224,7 +224,7 @@ def _run_other_executor(make_node: Callable[[], Node], args: Optional[List[str]]
         return EXIT_OK
     except (InvalidParameterValueException, InvalidParameterTypeException,
             ParameterError, StartupError) as error:
-        print(f'error: {_one_line(error)}', file=sys.stderr)
+        print(f'error: {one_line(error)}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     finally:
         if executor is not None:

@@ -250,6 +250,13 @@ class EstimatorSession:
             self.timed_out = False
         return status
 
+    def newest_stamp_now_ns(self) -> Optional[int]:
+        """Return the newest fused stamp plus the time since it was fused (None: none)."""
+        if self._last_fused_mono is None or self.estimator.last_stamp_ns is None:
+            return None
+        age_s = max(self._monotonic_s() - self._last_fused_mono, 0.0)
+        return self.estimator.last_stamp_ns + round(age_s * NS_PER_S)
+
     # -- helpers ------------------------------------------------------------------------
 
     def _publishable(self, step) -> bool:

@@ -68,9 +68,11 @@ import heapq
 from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
 from kf_train.filters import NS_PER_S
 from kf_train.ros import messages
+from kf_train.ros.lifecycle import node_factory
 from kf_train.ros.param_spec import ParameterError
 from kf_train.ros.parameters import declare_table, watch_changes
-from kf_train.ros.runner import run, StartupError
+from kf_train.ros.qos import OVERRIDES
+from kf_train.ros.runner import executor_option, run, StartupError
 from kf_train.ros.simulator_params import changed_config, PARAMETERS, simulator_config
 from kf_train.sim import ACCELERATION_SCENARIOS, CONTROL_NAMES, FaultInjector, make_stream
 from nav_msgs.msg import Odometry
@@ -88,9 +90,18 @@ FLUSH_TIMEOUT_S = 2.0
 class SimulatorNode(Node):
     """Publishes simulated measurements (and controls) of a seed scenario and the truth."""
 
+    NODE_NAME = 'simulator'
+    GATED_CALLBACKS = ('_on_timer',)
+    """What a managed node runs only while active (kf_train.ros.lifecycle)."""
+
     def __init__(self, **kwargs):
         """Declare the parameters, create the publishers and start the sampling timer."""
-        super().__init__('simulator', **kwargs)
+        super().__init__(self.NODE_NAME, **kwargs)
+        self.done = Future()
+        self.configure()
+
+    def configure(self) -> None:
+        """Declare and check the parameters, create the publishers and the timers."""
         try:
             self.config = simulator_config(declare_table(self, PARAMETERS))
         except ParameterError as error:
@@ -100,23 +111,20 @@ class SimulatorNode(Node):
         self.scenario, self.rate_hz = config.scenario, config.rate_hz
         self.simulation = make_stream(config.scenario, config.rate_hz, seed, **config.stream)
         self.faults = FaultInjector(config.faults, seed)
-        watch_changes(self, lambda changes: changed_config(self.config, changes),
-                      self._apply_changes)
+        self._unwatch = watch_changes(
+            self, lambda changes: changed_config(self.config, changes), self._apply_changes)
 
-        self.measurement_pub = self.create_publisher(
-            PoseWithCovarianceStamped, 'measurement', QOS_DEPTH)
-        self.truth_pub = self.create_publisher(Odometry, 'ground_truth', QOS_DEPTH)
+        self.measurement_pub = self._publisher(PoseWithCovarianceStamped, 'measurement')
+        self.truth_pub = self._publisher(Odometry, 'ground_truth')
         self.truth_accel_pub = None
         if self.scenario in ACCELERATION_SCENARIOS:
-            self.truth_accel_pub = self.create_publisher(AccelStamped, 'ground_truth_accel',
-                                                         QOS_DEPTH)
+            self.truth_accel_pub = self._publisher(AccelStamped, 'ground_truth_accel')
         self.control_name = CONTROL_NAMES[self.scenario]
         self.control_pub = None
         if self.control_name is not None:
             kind, self._control_msg, _ = messages.CONTROL_MESSAGES[self.control_name]
-            self.control_pub = self.create_publisher(kind, 'control', QOS_DEPTH)
+            self.control_pub = self._publisher(kind, 'control')
         self.clock_pub = None  # created when publish_clock is first needed
-        self.done = Future()
         self.published = 0
         self.delivered = 0
         self._start_ns = None
@@ -129,6 +137,10 @@ class SimulatorNode(Node):
                                                  clock=self._steady, autostart=False)
         self._timer = self.create_timer(
             1.0 / (self.rate_hz * config.values['real_time_factor']), self._on_timer)
+
+    def _publisher(self, kind, topic: str):
+        """Create a publisher whose QoS the qos_overrides parameters can change."""
+        return self.create_publisher(kind, topic, QOS_DEPTH, qos_overriding_options=OVERRIDES)
 
     @property
     def options(self):
@@ -165,7 +177,7 @@ class SimulatorNode(Node):
         truth_stamp_ns = self.faults.jumped_stamp_ns(sample.t_s, stamp_ns)
         if options.publish_clock:
             if self.clock_pub is None:
-                self.clock_pub = self.create_publisher(ClockMsg, '/clock', QOS_DEPTH)
+                self.clock_pub = self._publisher(ClockMsg, '/clock')
             self.clock_pub.publish(messages.to_clock_msg(truth_stamp_ns))
         if self.control_pub is not None:
             # The input over (t_{k-1}, t_k], stamped t_k, out before the measurement t_k.
@@ -242,8 +254,9 @@ class SimulatorNode(Node):
 
 
 def main(args=None) -> int:
-    """Run the simulator until Ctrl-C, SIGTERM or max_samples."""
-    return run(SimulatorNode, args)
+    """Run the simulator until Ctrl-C, SIGTERM or max_samples (``--executor events``)."""
+    args, executor = executor_option(args)
+    return run(node_factory(SimulatorNode, args), args, executor=executor)
 
 
 if __name__ == '__main__':

@@ -8,7 +8,8 @@ Pure (no rclpy, no message package), like :mod:`kf_train.ros.estimator_params`:
 
 from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
-from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec, ParamTable
+from kf_train.ros.param_spec import (
+    BIG, MANAGED_DESCRIPTION, ParameterError, ParamSpec, ParamTable)
 from kf_train.sim import (
     CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, DEFAULT_RAIL_FAMILY,
     FaultSettings, RAIL_FAMILIES, rail_parameters, ROBOT_SPEED_STD_MPS, SCENARIOS)
@@ -72,6 +73,7 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
               + _FIXED, choices=SCENARIOS, live=False, group=_G_FIXED),
     _double('rate_hz', 10.0, 'Sample rate [Hz]. ' + _FIXED, (0.01, 10000.0), 'Hz',
             live=False, group=_G_FIXED),
+    ParamSpec('managed', 'bool', False, MANAGED_DESCRIPTION, live=False, group=_G_FIXED),
     _double('real_time_factor', 1.0,
             'Simulated seconds per wall-clock second: samples go out every '
             '1/(rate_hz·real_time_factor) s, stamped 1/rate_hz apart, so above 1 the stamps '
@@ -161,13 +163,14 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
 
 
 class SimulatorOptions(NamedTuple):
-    """The parameters that configure the node's publishing, changeable at runtime."""
+    """The parameters that configure the node's publishing (all but managed: at runtime)."""
 
     frame_id: str
     child_frame_id: str
     max_samples: int
     min_subscribers: int
     publish_clock: bool
+    managed: bool
 
 
 class SimulatorConfig(NamedTuple):

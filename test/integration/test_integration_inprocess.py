@@ -380,7 +380,7 @@ def declared(node):
     """Return {name: value} of everything ``node`` declared itself."""
     return {name: parameter.value
             for name, parameter in node.get_parameters_by_prefix('').items()
-            if name not in IMPLICIT_PARAMETERS}
+            if name not in IMPLICIT_PARAMETERS and not name.startswith('qos_overrides.')}
 
 
 def same(a, b):

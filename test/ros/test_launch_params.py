@@ -128,3 +128,13 @@ def test_parse_bool():
     assert launch_params.parse_bool('use_sim_time', 'false') is False
     with pytest.raises(ValueError, match='use_sim_time'):
         launch_params.parse_bool('use_sim_time', 'maybe')
+
+
+def test_managed_argument_overrides_the_file_only_when_given():
+    """managed:='' keeps the file's value; true/false replace it; anything else refused."""
+    values = {'preset': 'train', 'managed': True}
+    assert launch_params.with_managed(values, '') == values
+    assert launch_params.with_managed(values, 'false')['managed'] is False
+    assert launch_params.with_managed({}, 'True') == {'managed': True}
+    with pytest.raises(ValueError, match='managed'):
+        launch_params.with_managed({}, 'maybe')

@@ -10,9 +10,9 @@ import os
 from kf_train.ros import estimator_params, simulator_params
 from kf_train.ros.estimator_node import EstimatorNode
 from kf_train.ros.param_spec import (
-    IMPLICIT_PARAMETERS, ParameterError, parse_override, read_params_file)
+    is_implicit, ParameterError, parse_override, read_params_file)
 from kf_train.ros.parameters import descriptor
-from kf_train.ros.runner import _one_line, StartupError
+from kf_train.ros.runner import one_line, StartupError
 from kf_train.ros.simulator_node import SimulatorNode
 import pytest
 from rcl_interfaces.msg import ParameterType
@@ -29,7 +29,7 @@ TYPES = {'bool': ParameterType.PARAMETER_BOOL, 'integer': ParameterType.PARAMETE
 
 def _declared(node):
     """Return the names a node declared itself."""
-    return set(node._parameters) - IMPLICIT_PARAMETERS
+    return {name for name in node._parameters if not is_implicit(name)}
 
 
 @pytest.mark.parametrize('node_class, module', NODES, ids=['simulator', 'estimator'])
@@ -87,7 +87,7 @@ def test_startup_refusals_are_the_tables(ros_context, node_class, module, assign
                                                                               value=value)])
     except (StartupError, InvalidParameterValueException,
             InvalidParameterTypeException) as error:
-        assert _one_line(error) == expected
+        assert one_line(error) == expected
     else:
         node.destroy_node()
         assert expected is None, f'{assignment}: the node started; the loader refused'
