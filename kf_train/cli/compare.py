@@ -1,24 +1,8 @@
 """
 ``kf-train compare``: the filter family on the same seeded Monte-Carlo runs.
 
-For each run r = 0..runs−1 the preset's seed scenario
-(:mod:`kf_train.sim.scenarios`) is simulated with seed ``seed + r``; every filter
-then runs over the same rows from the same initial estimate. By default that
-estimate is drawn from N(truth at t0, P0), so that the initial error has the
-covariance the filter assumes and the NEES test below is valid from the first row;
-``--initial preset`` uses the preset's fixed initial state instead (the seed's
-setup). ``--preset rail`` runs its IMM on rail runs
-(:mod:`kf_train.evaluate.compare_rail`).
-Per filter it reports:
-
-* the position RMSE over all rows of all runs, and at the last row [m];
-* the average NEES: ANEES_k = mean over runs of e_kᵀ P_k⁻¹ e_k (e the estimation
-  error, P the filter's covariance) and the fraction of rows k where it lies inside
-  the two-sided 99% χ² interval. For a consistent filter runs·ANEES_k is
-  χ²(runs·n), so the bounds are its 0.5% and 99.5% quantiles divided by runs
-  (computed by :mod:`kf_train.filters.chi2`, no scipy);
-* the wall-clock time per row (predict + update + reading the estimate) [µs];
-* runs in which the filter raised (left out of the statistics, and counted).
+What is run and measured (RMSE, ANEES with its χ² bounds, time per row, failed runs)
+is the engine's, :mod:`kf_train.evaluate.compare`.
 
 It prints a table, writes the per-row curves as CSV and draws a figure (PNG through
 matplotlib's Agg backend). The engine is :mod:`kf_train.evaluate`, the figure

@@ -37,13 +37,12 @@ import contextlib
 import os
 from typing import Callable, List, NamedTuple, Optional
 
-from kf_train.batch import (
-    bank_time_steps, group_rows, Groups, MAX_ABS_TIME_S, Segment, TimeOrderError)
+from kf_train.batch import group_rows, MAX_ABS_TIME_S, Segment
 from kf_train.filters import NS_PER_S
 from kf_train.io import (
-    check_time_range, check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns,
-    resolve_columns, time_order_error)
+    check_times, ID_COLUMN, InputError, is_bag, read_table, required_columns, resolve_columns)
 from kf_train.presets import Preset
+from kf_train.replay import check_bank_times
 import numpy as np
 
 TRUTH_PREFIX = 'true_'
@@ -94,18 +93,6 @@ def _header(data: bytes) -> List[str]:
     """Return the header's column names (the table reader checks it properly)."""
     line = data.split(b'\n', 1)[0].lstrip(b'\xef\xbb\xbf').decode('utf-8', 'replace')
     return [name.strip().strip('"').strip() for name in line.split(',')]
-
-
-def check_bank_times(path: str, t: np.ndarray, lines: np.ndarray, groups: Groups,
-                     labels: List[str], t0_s: float) -> None:
-    """Raise InputError naming the line of the first time out of range or order per id."""
-    # The replay's check (kf_train.replay.memory.check_bank_times) too: a floor apart.
-    check_time_range(path, t, lines, MAX_ABS_TIME_S)
-    try:
-        bank_time_steps(t, groups, t0_s)
-    except TimeOrderError as error:
-        raise time_order_error(path, t, lines, t0_s, error.row, error.previous,
-                               labels[groups.codes[error.row]]) from None
 
 
 def table_segments(path: str, preset: Preset, columns: dict, lines: np.ndarray,

@@ -2,7 +2,7 @@
 The package's floors (README, "The floors"), checked on the source with ast.
 
 1. ``filters``  2. ``presets``  3. ``estimator``, ``batch``, ``sim``, ``io``  4. ``ros``
-5. ``replay``, ``tune``, ``evaluate``  6. ``plots``  7. ``cli``: a module imports only
+5. ``replay``, ``evaluate``  6. ``tune``, ``plots``  7. ``cli``: a module imports only
 from its own package or from a lower floor; the packages of one floor do not import
 each other. ``core`` is the old API's re-export: it may import floors 1-3, and nothing
 in kf_train imports it.
@@ -32,7 +32,7 @@ pytestmark = pytest.mark.linter
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 PACKAGE_DIR = os.path.join(REPO, 'kf_train')
 FLOORS = {'filters': 1, 'presets': 2, 'estimator': 3, 'batch': 3, 'sim': 3, 'io': 3,
-          'ros': 4, 'replay': 5, 'tune': 5, 'evaluate': 5, 'plots': 6, 'cli': 7}
+          'ros': 4, 'replay': 5, 'evaluate': 5, 'tune': 6, 'plots': 6, 'cli': 7}
 COMPATIBILITY = 'core'
 ROS_ONLY = ('rclpy', 'rosidl_runtime_py', 'rosgraph_msgs', 'builtin_interfaces',
             'rcl_interfaces')
