@@ -84,6 +84,10 @@ def stable_argsort(keys: np.ndarray) -> np.ndarray:
     """
     if keys.size == 0 or keys.dtype.kind not in 'iu' or keys.min() < 0:
         return np.argsort(keys, kind='stable')
+    if np.count_nonzero(keys[1:] < keys[:-1]) < 64:
+        # A few ascending runs (ids in turn, step after step): timsort merges them in
+        # near-linear time (4 runs of 10⁶: 0.03 s, the radix passes 0.3 s).
+        return np.argsort(keys, kind='stable')
     top = int(keys.max())
     if top < 1 << 16:
         return np.argsort(keys.astype(np.uint16), kind='stable')
@@ -465,7 +469,29 @@ def _run_together(preset, dt, z, u, groups: Groups, together, x0, P0, unique_dt,
         if bad.size:
             raise SeriesError(int(bad.min()), 'the filter diverged (non-finite estimate)')
     if not _in_order(rows):
-        # The lock-step results were written step-major: put them in row order.
-        for array in out:
-            if array is not None:
-                array[rows] = array[:R].copy()
+        _to_row_order(rows, out)
+
+
+def _to_row_order(rows: np.ndarray, out) -> None:
+    """
+    Move the lock-step's results, written step-major at 0..R−1, to their ``rows``.
+
+    Gathered (the table's rows in order, each reading its place) rather than scattered:
+    10⁶ shuffled rows of (2, 2) take 60-90 ns each, 135-210 scattered (2-core host).
+    """
+    R, N = rows.shape[0], out[0].shape[0]
+    place = np.empty(N, dtype=np.intp)
+    place[rows] = np.arange(R)
+    targets = None
+    if R < N:       # some rows are not the lock-step's: only its own, in table order
+        mine = np.zeros(N, dtype=bool)
+        mine[rows] = True
+        targets = np.flatnonzero(mine)
+        place = place[targets]
+    for array in out:
+        if array is not None:
+            moved = np.take(array[:R], place, axis=0)
+            if targets is None:
+                array[...] = moved
+            else:
+                array[targets] = moved
