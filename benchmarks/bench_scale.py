@@ -250,7 +250,7 @@ def _simdkalman_rows(quick: bool) -> List[Row]:
         ratio = theirs / ours
         rows.append(('7', 'bank vs simdkalman, 2-state, predict+update', f'N = {n:,} filters, '
                      f'{steps} steps', f'run_bank {ours * 1e9:.3g} ns, simdkalman '
-                     f'{theirs * 1e9:.3g} ns per filter-step; Δ {delta:.1e}',
+                     f'{theirs * 1e9:.3g} ns per filter-step; Δ {delta:.1e}; {_load()}',
                      f'{ratio:.2g}× simdkalman', f'≥20×: {"met" if ratio >= 20 else "MISSED"}'))
     return rows
 
