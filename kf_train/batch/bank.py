@@ -383,7 +383,8 @@ def run_bank(preset, t_s, z, u=None, ids=None, *, t0_s: float = 0.0, horizon_s=N
     numpy step), objects with many rows each along its own time axis
     (:func:`run_linear_series`), split where a cost model says it is cheapest. Other
     presets and filters run object by object. A :class:`SeriesError` names the row.
-    ``groups``, from :func:`group_rows` of the ids, saves grouping them again.
+    ``groups``, from :func:`group_rows` of the ids, saves grouping them again. With one
+    dt for every row, the result's F is a read-only view of one matrix.
     """
     t_arr = np.asarray(t_s, dtype=float)
     if groups is None:
@@ -419,11 +420,9 @@ def run_bank(preset, t_s, z, u=None, ids=None, *, t0_s: float = 0.0, horizon_s=N
         if horizon_s:
             out[4][rows], out[5][rows] = result.predicted_x, result.predicted_P
     F_u = owner.dynamics.F_batch(dts)
-    if dts.shape[0] == 1:           # one dt: filled, not gathered (0.4 → 0.1 s at 4·10⁶ rows)
-        F = np.empty((N,) + F_u.shape[1:])
-        F[...] = F_u[0]
-    else:
-        F = F_u[inv]
+    # One dt: F is one matrix, a read-only view for every row (as run_linear_series
+    # gives it), not 32 bytes written per row (0.1-0.4 s at 4·10⁶ rows).
+    F = np.broadcast_to(F_u[0], (N,) + F_u.shape[1:]) if dts.shape[0] == 1 else F_u[inv]
     return SeriesResult(t_arr, out[0], out[1], out[2], out[3], F, horizon_s, out[4], out[5])
 
 
