@@ -60,15 +60,19 @@ def group_rows(ids) -> Groups:
         raise ValueError(f'ids must be a vector, got shape {ids.shape}')
     if ids.dtype.kind in 'iu' and ids.size and 0 <= ids.min() and ids.max() < 4 * ids.size:
         # Small non-negative integers (codes): no sort needed to find the distinct ones.
-        present = np.bincount(ids) > 0
+        tally = np.bincount(ids)
+        present = tally > 0
         labels = np.flatnonzero(present)
-        rank = np.cumsum(present) - 1
-        codes = rank[ids].astype(np.int64)
+        if labels.shape[0] == tally.shape[0]:    # ids 0..K−1 all present: codes = ids
+            codes = ids.astype(np.int64)
+        else:
+            codes = (np.cumsum(present) - 1)[ids].astype(np.int64)
+        counts = tally[present].astype(np.int64)
     else:
         labels, codes = np.unique(ids, return_inverse=True)
         codes = codes.reshape(-1).astype(np.int64)
+        counts = np.bincount(codes, minlength=labels.shape[0]).astype(np.int64)
     order = stable_argsort(codes)
-    counts = np.bincount(codes, minlength=labels.shape[0]).astype(np.int64)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     return Groups(codes, labels, order, starts, counts)
 
