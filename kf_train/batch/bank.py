@@ -30,7 +30,9 @@ import numpy as np
 LOCKSTEP_STEP_S = 1.5e-4
 SERIES_CALL_S = 2e-3
 # Objects per lock-step block: each block runs through all its steps while its
-# intermediates (~40 arrays of this length) stay in the CPU's cache.
+# intermediates (14-20 buffers of this length, ~1 MiB) stay in the CPU's cache. CPU time
+# per object-row, 10⁵ objects × 4 rows (train, 2-core host): blocks of 1,024: 183 ns;
+# 4,096: 126; 8,192: 131; 16,384: 141; 65,536: 195; 262,144 (no blocks): 199.
 LOCKSTEP_BLOCK = 8192
 
 
