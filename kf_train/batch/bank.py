@@ -10,7 +10,7 @@ one numpy step), objects with many rows each along its own time axis
 is cheapest.
 """
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple, Optional, Tuple, Union
 
 from kf_train.batch.linear import predict_soa, run_linear_series
 from kf_train.batch.series import (
@@ -19,7 +19,7 @@ from kf_train.batch.series import (
 from kf_train.batch.soa import (
     entry_add, soa_const, soa_gain, soa_madd, soa_mm, soa_msub, soa_mv,
     soa_prior_covariance, soa_sym, soa_t)
-from kf_train.batch.tape import trace
+from kf_train.batch.tape import Tape, trace
 from kf_train.filters import as_finite_array, NS_PER_S, seconds_to_ns, seconds_to_ns_array
 import numpy as np
 
@@ -208,7 +208,7 @@ class _Step(NamedTuple):
     """The step's :class:`~kf_train.batch.tape.Tape` (or :class:`_Untraced`)."""
 
 
-def _step_tape(preset, Q, B, p: int, per_row: bool, horizon_s):
+def _step_tape(preset, Q, B, p: int, per_row: bool, horizon_s) -> Union[Tape, '_Untraced']:
     """Return the tape of the lock-step's Kalman step (traced once per call)."""
     n, m = preset.dim_x, preset.dim_z
     # The step's arguments: True for an array input, constants as they are.
@@ -223,7 +223,7 @@ def _step_tape(preset, Q, B, p: int, per_row: bool, horizon_s):
 
 
 def _lockstep_linear(preset, dt, z, u, groups: Groups, objects: np.ndarray, x0, P0, out,
-                     unique_dt, horizon_s=None):
+                     unique_dt, horizon_s=None) -> np.ndarray:
     """
     Filter ``objects`` (codes) of a linear preset in lock-step; fill ``out`` by row.
 
@@ -360,7 +360,7 @@ class _Untraced:
         """Return the outputs for the flat ``inputs`` (as Tape.replay)."""
         flat = iter(inputs)
 
-        def fill(leaf):
+        def fill(leaf: object) -> object:
             if isinstance(leaf, list):
                 return [fill(e) for e in leaf]
             return next(flat) if leaf is True else leaf
@@ -432,7 +432,7 @@ def run_bank(preset, t_s, z, u=None, ids=None, *, t0_s: float = 0.0, horizon_s=N
     return SeriesResult(t_arr, out[0], out[1], out[2], out[3], F, horizon_s, out[4], out[5])
 
 
-def unique_steps(dt: np.ndarray):
+def unique_steps(dt: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
     """
     Return np.unique(dt, return_inverse=True), the inverse flat, sooner for one dt.
 

@@ -150,7 +150,7 @@ def trace(step: Callable, shape: Sequence) -> Tape:
     """
     tape = Tape()
 
-    def symbols(leaf):
+    def symbols(leaf: object) -> object:
         if isinstance(leaf, list):
             return [symbols(e) for e in leaf]
         return tape.new_input() if leaf is True else leaf
