@@ -244,13 +244,19 @@ def predict_ahead(dynamics, horizon_s: float, xs: list, P: list, us, N: int):
     ``xs`` and ``P`` are the rows' estimates as structures of arrays; ``us`` the rows'
     controls (one array per control, held over the horizon) or None.
     """
+    pred, pred_P = predict_soa(dynamics, horizon_s, xs, P, us)
+    return soa_vector_to_stack(pred, N), soa_to_stack(pred_P, N)
+
+
+def predict_soa(dynamics, horizon_s: float, xs: list, P: list, us):
+    """Return (x, P) predicted horizon_s ahead of every row, as structures of arrays."""
     Fh = soa_const(dynamics.F_batch([horizon_s])[0])
     Qh = soa_const(dynamics.Q_batch([horizon_s])[0])
     pred = soa_mv(Fh, xs)                              # F(h) x (+ B(h) u, control held)
     if us is not None:
         Bh = soa_const(dynamics.B_batch([horizon_s])[0])
         pred = [entry_add(e, f) for e, f in zip(pred, soa_mv(Bh, us))]
-    return soa_vector_to_stack(pred, N), soa_to_stack(soa_prior_covariance(Fh, P, Qh), N)
+    return pred, soa_prior_covariance(Fh, P, Qh)
 
 
 def _shift(e, first: float, N: int):
