@@ -291,7 +291,7 @@ def readme_floors(readme: str) -> Dict[str, int]:
 
 
 def test_the_readme_draws_the_floors_the_checker_enforces():
-    """README's drawing of the floors names exactly the packages and floors of FLOORS."""
+    """The README's drawing of the floors names exactly the packages and floors of FLOORS."""
     with open(os.path.join(REPO, 'README.md'), encoding='utf-8') as stream:
         drawn = readme_floors(stream.read())
     drawn.pop(COMPATIBILITY, None)
