@@ -116,9 +116,23 @@ class Ros2:
         return subprocess.run(['ros2'] + list(args), env=self.env, stdin=subprocess.DEVNULL,
                               capture_output=True, text=True, timeout=timeout_s)
 
+    def run_found(self, *args, timeout_s=COMMAND_TIMEOUT_S):
+        """Run ``ros2 ARGS`` on a node, again while it says 'Node not found' (bounded)."""
+        runs = []
+
+        def found():
+            # A node that `ros2 node list` shows can still be unknown for a moment to a
+            # new CLI process, which discovers the graph afresh (slower on a loaded
+            # machine): only that is retried, within the discovery bound.
+            runs.append(self.run(*args, timeout_s=timeout_s))
+            return 'Node not found' not in runs[-1].stderr
+
+        wait_until(found, DISCOVERY_TIMEOUT_S, poll_s=0.2)
+        return runs[-1]
+
     def check(self, *args, timeout_s=COMMAND_TIMEOUT_S):
-        """Run ``ros2 ARGS``; fail unless it exits 0; return its stdout."""
-        done = self.run(*args, timeout_s=timeout_s)
+        """Run ``ros2 ARGS`` (:meth:`run_found`); fail unless it exits 0; return its stdout."""
+        done = self.run_found(*args, timeout_s=timeout_s)
         assert done.returncode == 0, (args, done.stdout, done.stderr)
         assert 'Traceback' not in done.stdout + done.stderr, (args, done.stderr)
         return done.stdout

@@ -30,7 +30,7 @@ def _state(ros2, node):  # noqa: F811
 
 def _transition(ros2, node, transition, succeeds=True):  # noqa: F811
     """Run ``ros2 lifecycle set NODE TRANSITION``; check that it succeeded (or failed)."""
-    done = ros2.run('lifecycle', 'set', node, transition)
+    done = ros2.run_found('lifecycle', 'set', node, transition)
     text = done.stdout + done.stderr
     assert 'Traceback' not in text, text
     assert ('Transitioning successful' in text) == succeeds, (transition, text)
