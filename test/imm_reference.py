@@ -6,7 +6,10 @@ stack (kf_train.filters.imm_stack) and keep per-dt matrices; this is the origina
 mode-by-mode algorithm, transcribed, for test/unit/test_imm_stack.py to compare with.
 It builds its regimes from the same public pieces (relaxation_transition,
 relaxation_noise, the parameters) and runs them through kf_train.filters.kalman.
-Only the class names differ (ReferenceIMM, ReferenceRailModel).
+Only the class names differ (ReferenceIMM, ReferenceRailModel). Added since: the
+no-reversal projection of each regime's updated mean (rail_model.hold_velocity),
+written out regime by regime; the learned noise scale is not here, so the tests
+compare with a RailModel whose noise_window is 0.
 """
 
 import math
@@ -267,6 +270,18 @@ class ReferenceRailModel(ReferenceIMM):
             _normal_cdf((params.stop_speed_mps - v) / std)
         rates[BRAKE, STAND] = params.stop_rate_hz * slow
         return self._rates.matrix(dt_s, rates)
+
+    def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
+        """Return the IMM update, each regime's negative mean velocity projected onto 0."""
+        state, result = super().update(state, z, R)
+        means = np.array(state.means)
+        for j in range(means.shape[0]):
+            if means[j, 1] < 0.0:
+                P = state.covariances[j]
+                if P[1, 1] > 0.0:
+                    means[j] = means[j] - P[:, 1] * (means[j, 1] / P[1, 1])
+                means[j, 1] = 0.0
+        return state._replace(means=_read_only(means)), result
 
     def entry(self, j: int, x: np.ndarray, P: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
         """

@@ -21,14 +21,18 @@ with numerical gradients and a curvature needs dozens of them. :func:`rail_log_l
 runs K settings at once instead: the same equations as
 :class:`~kf_train.filters.RailModel` and :mod:`kf_train.filters.imm_stack` (mixing with
 the regimes' entry transformation, the state-dependent brake → stand rate, x⁻ = F x,
-P⁻ = F P Fᵀ + Q, the Joseph-form scalar update, the posterior in the log domain),
+P⁻ = F P Fᵀ + Q, the Joseph-form scalar update, no velocity below 0
+(:func:`~kf_train.filters.rail_model.hold_velocity`), the posterior in the log domain),
 with one more leading axis for the settings, so one pass costs little more than one
 run. The tests hold it to the node's classes (RailModel.predict/update, and the
 StreamEstimator) to 1e-9 relative on simulated runs.
 
 Only noises that do not change the motion's transition F are varied here: the
 acceleration noise q_a, the command noise q_ℓ, the capability noise and the
-measurement variance R (:class:`RailNoise`); everything else is the preset's.
+measurement variance R (:class:`RailNoise`); everything else is the preset's. R is
+the setting's, fixed: this is the likelihood of R itself, so the node's learned scale on
+R (``noise_window``, :mod:`kf_train.filters.noise_adaptation`) is off here, and the
+tests compare with a node whose ``noise_window`` is 0.
 """
 
 import dataclasses
@@ -37,7 +41,8 @@ from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
-    first_jump_row, LOG_2PI, RailModel, RailModelParameters, RateTransition, stop_probability)
+    first_jump_row, hold_velocity, LOG_2PI, RailModel, RailModelParameters, RateTransition,
+    stop_probability)
 import numpy as np
 
 STAND, ACCELERATE, CRUISE, BRAKE = range(4)
@@ -260,6 +265,7 @@ def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innov
         covs = np.matmul(np.matmul(unit.F, mixed_P), unit.F_transposed) + Q  # F P Fᵀ + Q
         covs = (covs + covs.swapaxes(-1, -2)) * 0.5
         means, covs, y, s = _update(means, covs, float(z[k + 1]), R, identity)
+        means = hold_velocity(means, covs)                            # no reversal
         logs = np.log(cbar) - 0.5 * (y * y / s + np.log(s) + LOG_2PI)  # log c̄_j N(y_j; s_j)
         top = logs.max(axis=1, keepdims=True)
         w = np.exp(logs - top)

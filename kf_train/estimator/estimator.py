@@ -198,6 +198,20 @@ class StreamEstimator:
             return None
         return self.model.imm.mode_names, probabilities(fusion.x, fusion.P)
 
+    def noise_scale(self) -> Optional[float]:
+        """
+        Return the learned scale s on the measurement noise (R = s · the variance given).
+
+        For the rail preset, which learns it from its innovations (``noise_window``,
+        :mod:`kf_train.filters.noise_adaptation`); None for the other presets, and
+        before the first measurement.
+        """
+        fusion = self._fusion
+        scale = getattr(self.model, 'noise_scale', None)
+        if scale is None or fusion.x is None:
+            return None
+        return scale(fusion.x, fusion.P)
+
     def predict_to(self, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
         """
         Return (x, P) predicted from the newest state to ``stamp_ns``; nothing changes.

@@ -85,6 +85,10 @@ class IMMModel:
         """Return the mode probabilities behind x (the initial ones if none)."""
         return self.state_of(x, P).probabilities.copy()
 
+    def noise_scale(self, x, P) -> float:
+        """Return the learned scale on the measurement noise behind x (1: R as given)."""
+        return self.state_of(x, P).noise.scale
+
 
 def _forget(states: Dict[int, tuple], key: int):
     """Return the weak-reference callback that drops ``states[key]`` once its mean is freed."""

@@ -35,8 +35,10 @@ from kf_train.filters.models import (
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
+from kf_train.filters.noise_adaptation import NoiseAdaptation, NoiseScale
 from kf_train.filters.rail_model import (
-    make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES, stop_probability)
+    hold_velocity, make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES,
+    stop_probability)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
     RegularisedSnapshot, tempering_step)
@@ -60,9 +62,11 @@ __all__ = [
     'ExtendedModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
     'first_jump_row',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
-    'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter', 'keep_positive_definite',
+    'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter',
+    'keep_positive_definite',
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
+    'NoiseAdaptation', 'NoiseScale',
     'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',

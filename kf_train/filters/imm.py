@@ -40,6 +40,7 @@ from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 from kf_train.filters import imm_stack
 from kf_train.filters.imm_stack import frozen as _frozen, LinearStack
 from kf_train.filters.kalman import LOG_2PI, UpdateResult
+from kf_train.filters.noise_adaptation import FIXED, NoiseAdaptation, NoiseScale
 from kf_train.filters.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
 
@@ -62,9 +63,12 @@ class IMMState(NamedTuple):
     """Mode-conditioned covariances (N, n, n), read-only."""
     probabilities: np.ndarray
     """Mode probabilities (N,), summing to 1, read-only."""
+    noise: NoiseScale = FIXED
+    """The scale on the measurement noise and what learned it (FIXED: R as given;
+    :mod:`~kf_train.filters.noise_adaptation`)."""
 
 
-def make_state(means, covariances, probabilities) -> IMMState:
+def make_state(means, covariances, probabilities, noise: NoiseScale = FIXED) -> IMMState:
     """Return a checked, read-only IMMState (probabilities are normalised)."""
     means = as_finite_array('means', means)
     if means.ndim != 2 or means.shape[0] < 1:
@@ -82,7 +86,7 @@ def make_state(means, covariances, probabilities) -> IMMState:
         raise ValueError(f'probabilities must be >= 0 with a positive sum, got '
                          f'{probabilities.tolist()}')
     return IMMState(_read_only(means.copy()), _read_only(covariances),
-                    _read_only(probabilities / total))
+                    _read_only(probabilities / total), noise)
 
 
 def check_transition_matrix(matrix, count: int) -> np.ndarray:
@@ -242,11 +246,16 @@ class IMM:
     * ``matrices``: optional ``dt_s -> (F, Q, Fᵀ)``, the modes' stacked matrices
       (N, n, n) for the stacked path, for models that build them checked themselves;
       without it, the stack asks each mode and checks (:class:`LinearStack`).
+    * ``adaptation``: optional :class:`~kf_train.filters.noise_adaptation.NoiseAdaptation`
+      (stacked modes only): the measurement noise in use is the state's learned scale
+      times the R given, and each update teaches the scale (the state's ``noise``).
+      Without it the state's scale stays as it is (1: R as given).
     """
 
     def __init__(self, modes: Sequence, transition: Callable, mode_names=None,
                  entry: Optional[Callable] = None, *, mixing: Optional[Callable] = None,
-                 matrices: Optional[Callable] = None, stochastic: bool = False):
+                 matrices: Optional[Callable] = None, stochastic: bool = False,
+                 adaptation: Optional[NoiseAdaptation] = None):
         """Keep the models and hooks; names default to mode0, mode1, …."""
         if len(modes) < 1:
             raise ValueError('an IMM needs at least one mode')
@@ -262,6 +271,10 @@ class IMM:
                              f'{names!r}')
         self.mode_names = names
         self._stack = LinearStack.of(self.modes)
+        self.adaptation = adaptation if adaptation is not None and adaptation.enabled else None
+        if self.adaptation is not None and self._stack is None:
+            raise ValueError('measurement noise adaptation needs modes that are LinearModels '
+                             'measuring a scalar')
         if matrices is None and self._stack is not None:
             matrices = self._stack.matrices
         self.matrices = matrices
@@ -344,7 +357,8 @@ class IMM:
         cbar, mixed_x, mixed_P = self._mix(state, self._transition_matrix(dt_s, state))
         means, covs = self._predict_modes(mixed_x, mixed_P, dt_s, u)
         total = sum(cbar.tolist())
-        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / total))
+        return IMMState(_read_only(means), _read_only(covs), _read_only(cbar / total),
+                        state.noise)
 
     def _predict_modes(self, means: np.ndarray, covs: np.ndarray, dt_s: float, u=None):
         """Return each mode's own prediction of its (means[j], covs[j]) over dt_s."""
@@ -381,20 +395,26 @@ class IMM:
             results.append(result)
         logs = np.array([log_likelihood(result) for result in results])
         posterior = imm_stack.posterior(prior_mu, logs)        # μ_j = c̄_j Λ_j / Σ
-        new_state = IMMState(_read_only(means), _read_only(covs), _read_only(posterior))
+        new_state = IMMState(_read_only(means), _read_only(covs), _read_only(posterior),
+                             state.noise)
         return new_state, self._mixture_innovation(state, results)
 
     def _update_stacked(self, state: IMMState, z, R) -> Tuple[IMMState, UpdateResult]:
         """Do :meth:`update` on the stack: every mode a LinearModel measuring a scalar."""
         stack = self._stack
         z = _measurement(z)
-        R = stack.R if R is None else _noise_row(R)
+        reported = stack.R if R is None else _noise_row(R)
+        noise = state.noise
+        # R = s r: the learned scale on the variance given (exactly r while s is 1).
+        R = reported if noise.scale == 1.0 else reported * noise.scale
         result = imm_stack.update(state.means, state.covariances, z, stack.H, R,
                                   stack.identity, stack.selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
         y, S, nis, gain = imm_stack.mixture_innovation(state.probabilities, state.means, result)
+        if self.adaptation is not None:
+            noise = self.adaptation.learn(noise, y, S, float(reported[0]))
         new_state = IMMState(_read_only(result.means), _read_only(result.covariances),
-                             _read_only(posterior))
+                             _read_only(posterior), noise)
         return new_state, UpdateResult(np.array([y]), np.array([[S]]), nis, gain[:, None])
 
     @staticmethod

@@ -47,6 +47,7 @@ from typing import Dict, Tuple
 from kf_train.filters import imm_stack
 from kf_train.filters.imm import first_jump_row, IMM, IMMFilter, IMMState, RateTransition
 from kf_train.filters.models import LinearModel
+from kf_train.filters.noise_adaptation import NoiseAdaptation
 from kf_train.filters.rail_dynamics import (
     _phi, moving_noise, moving_transition, relaxation_transition, RelaxationNoise, stand_noise,
     STAND_TRANSITION)
@@ -113,6 +114,12 @@ class RailModelParameters:
     """Standard deviation of the velocity at the first measurement [m/s]."""
     initial_acceleration_std_mps2: float = 1.0
     """Standard deviation of a and ℓ at the first measurement [m/s²]."""
+    noise_window: float = 100.0
+    """Memory of the learned measurement-noise scale [measurements]; 0: R as given."""
+    noise_scale_min: float = 1e-3
+    """Lower bound of the learned scale on R."""
+    noise_scale_max: float = 100.0
+    """Upper bound of the learned scale on R."""
 
     def __post_init__(self):
         """Check every figure: finite, >= 0, and > 0 where it divides."""
@@ -124,6 +131,14 @@ class RailModelParameters:
         for name in ('noise_std_m', 'response_time_s', 'stop_speed_mps'):
             if getattr(self, name) <= 0.0:
                 raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
+        if not self.noise_window.is_integer():
+            raise ValueError(f'noise_window must be a whole number, got {self.noise_window}')
+        self.adaptation()  # raises ValueError for bounds out of order
+
+    def adaptation(self) -> NoiseAdaptation:
+        """Return how the measurement-noise scale is learned (noise_window 0: not at all)."""
+        return NoiseAdaptation(window=int(self.noise_window), scale_min=self.noise_scale_min,
+                               scale_max=self.noise_scale_max)
 
     def rates(self) -> np.ndarray:
         """Return the switching rates [1/s], rates[i, j] from mode i to j (stop excluded)."""
@@ -202,6 +217,31 @@ def stop_probability(v, std, stop_speed_mps: float):
         _normal_cdf((stop_speed_mps - v) / std)
 
 
+def hold_velocity(means: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """
+    Return the means with every mean velocity below 0 projected onto v = 0: THE rule.
+
+    A train does not reverse, so a regime whose updated mean velocity is negative (a
+    receiver's drift at a stop, a fix that jumps back) has its mean moved to v = 0
+    along its own covariance: x - P e (v / P_vv), e the velocity axis, the conditional
+    mean given v = 0 (Simon 2010, estimate projection). P is kept, so the velocity's
+    doubt is not understated. ``means`` (..., n) and ``covariances`` (..., n, n), one
+    regime, a stack of them or the tuner's settings × regimes; ``means`` itself is
+    returned when no velocity is negative, else a new array.
+    """
+    velocity = means[..., 1]
+    if not velocity.min() < 0.0:
+        return means
+    column = covariances[..., :, 1]                                   # P e
+    variance = column[..., 1]                                         # P_vv
+    backwards = velocity < 0.0
+    shift = np.where(backwards & (variance > 0.0),
+                     velocity / np.where(variance > 0.0, variance, 1.0), 0.0)
+    held = means - column * shift[..., None]                          # x - P e v / P_vv
+    held[..., 1] = np.where(backwards, 0.0, held[..., 1])
+    return held
+
+
 class RailModel(IMM):
     """
     The four-regime rail IMM (pure: states in, states out); see the module docstring.
@@ -223,7 +263,8 @@ class RailModel(IMM):
         # Π is row-stochastic by construction (first_jump_row), so not re-checked.
         super().__init__((_stand_model(parameters), moving, moving, moving), self.transition,
                          MODE_NAMES, self.entry, mixing=self.mix_entering,
-                         matrices=self.matrices, stochastic=True)
+                         matrices=self.matrices, stochastic=True,
+                         adaptation=parameters.adaptation())
         self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
 
     def _slow(self, state: IMMState) -> float:
@@ -298,6 +339,15 @@ class RailModel(IMM):
         which :meth:`mix_entering` applies to all components at once.
         """
         return self._entry.enter(j, x, P)
+
+    def update(self, state: IMMState, z, R=None):
+        """Return the IMM's update, no regime's mean velocity below 0 (:func:`hold_velocity`)."""
+        state, result = super().update(state, z, R)
+        means = hold_velocity(state.means, state.covariances)
+        if means is not state.means:
+            means.flags.writeable = False
+            state = state._replace(means=means)
+        return state, result
 
     def first_estimate(self, position_m: float, variance_m2: float = None) -> IMMState:
         """Return the state after a first position measurement: v, a, ℓ wide, regimes even."""

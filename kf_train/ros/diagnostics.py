@@ -193,7 +193,9 @@ def regime_values(estimator) -> List[Tuple[str, str]]:
 
     ``regime`` (the likeliest regime's name; ``unknown`` before the first measurement)
     and ``regime.<name>`` (its probability after the newest fused measurement, 4
-    decimals). Nothing for a model without regimes.
+    decimals), and ``measurement_noise_scale``, the scale the model learned on R
+    (:meth:`~kf_train.estimator.StreamEstimator.noise_scale`). Nothing for a model
+    without regimes.
     """
     names = regime_names(estimator)
     if not names:
@@ -203,8 +205,12 @@ def regime_values(estimator) -> List[Tuple[str, str]]:
         return [('regime', 'unknown')]
     names, probabilities = current
     likeliest = names[int(np.argmax(probabilities))]
-    return [('regime', likeliest)] + [(f'regime.{name}', f'{float(p):.4f}')
-                                      for name, p in zip(names, probabilities)]
+    values = [('regime', likeliest)] + [(f'regime.{name}', f'{float(p):.4f}')
+                                        for name, p in zip(names, probabilities)]
+    scale = estimator.noise_scale()
+    if scale is not None:  # the learned scale on R: visible as it adapts
+        values.append(('measurement_noise_scale', f'{scale:.4g}'))
+    return values
 
 
 def _nis_values(nis: Sequence[float],

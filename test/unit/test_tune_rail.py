@@ -92,7 +92,7 @@ def _node_log_likelihood(params: RailModelParameters, segment: Segment, R: float
 def test_the_stacked_likelihood_is_the_node_imms():
     """One pass over K settings gives each setting's ℓ and NIS as the node's IMM does."""
     segment = _segment(7, 1500)
-    base = RailModelParameters()
+    base = RailModelParameters(noise_window=0)  # the likelihood of a fixed R (no learning)
     settings = [RailNoise(), RailNoise(1e-3, 1e-5, None, 1.3), RailNoise(1e-2, 1e-3, 1e-5, 0.8)]
     result = rail_log_likelihoods(base, [segment], settings, innovations=True)
     for setting, ll, nis in zip(settings, result.log_likelihood, result.nis):
