@@ -11,13 +11,14 @@ stamps. Every rejection is counted and raised as :class:`Rejected`, with the sta
 exactly as before unless the rejection itself reset the filter.
 """
 
-from typing import Optional, Tuple
+from typing import List, Optional, Tuple
 
 from kf_train.estimator.contract import (
     Counters, EstimateStep, NUMERICAL_ERRORS, Rejected)
 from kf_train.estimator.controls import Controls, propagate, prune_controls
 from kf_train.estimator.history import (
     Entry, History, initial_state, replay, replay_control, rewind_point)
+from kf_train.estimator.reacquire import consistent_group
 from kf_train.estimator.settings import Configuration
 from kf_train.filters import NS_PER_S, UpdateResult
 import numpy as np
@@ -35,6 +36,10 @@ class Fusion:
         self.consecutive_outliers = 0
         self.stale_streak = 0
         self.locked_out = False
+        # The fixes rejected in a row (stamp, z, R), and after a lock-out the group the
+        # next measurement re-initialises with (kf_train.estimator.reacquire).
+        self.rejected: List[Tuple[int, np.ndarray, np.ndarray]] = []
+        self.regroup: List[Tuple[int, np.ndarray, np.ndarray]] = []
         self.counters = Counters()
         self.configure(config)
         self.controls: Optional[Controls] = Controls(dim_u) if dim_u else None
@@ -54,6 +59,8 @@ class Fusion:
         self.consecutive_outliers = 0
         self.stale_streak = 0
         self.locked_out = reason == 'outlier_lockout'
+        self.regroup = self.rejected if self.locked_out else []
+        self.rejected = []
         if reason in ('clock_jump', 'stream_restart') and self.controls is not None:
             self.controls.clear()  # stamped on the old time line
         self.counters.resets[reason] += 1
@@ -102,16 +109,36 @@ class Fusion:
         raise Rejected(reason, message)
 
     def _reject_update(self, reason: str, message: str,
-                       update: Optional[UpdateResult] = None) -> None:
-        """Reject an outlier or a numerical failure; enough in a row reset the filter."""
+                       update: Optional[UpdateResult] = None, fix: Optional[tuple] = None
+                       ) -> None:
+        """
+        Reject an outlier or a numerical failure; enough in a row reset the filter.
+
+        ``fix`` (stamp, z, R) is the rejected measurement. The reset needs the last
+        ``max_consecutive_outliers`` rejected fixes to be one consistent group
+        (:func:`~kf_train.estimator.reacquire.consistent_group`): scattered gross
+        fixes are rejected and the track coasts on; a group restarts it, all of it.
+        """
         self.consecutive_outliers += 1
+        needed = self.config.settings.max_consecutive_outliers
+        if fix is not None:
+            self.rejected = (self.rejected + [fix])[-needed:]
         reset = None
-        if self.consecutive_outliers >= self.config.settings.max_consecutive_outliers:
+        if self.consecutive_outliers >= needed and self._group_agrees():
             reset = 'outlier_lockout'
-            message += (f'; {self.consecutive_outliers} consecutive rejections: filter '
-                        'reset, the next measurement initialises it')
+            message += (f'; {self.consecutive_outliers} consecutive rejections that agree '
+                        'with each other: filter reset, the next measurement initialises '
+                        'it with them')
             self.reset(reset)
         self._reject(reason, message, reset, update)
+
+    def _group_agrees(self) -> bool:
+        """Return whether the fixes rejected in a row agree with each other (or are few)."""
+        group = self.rejected
+        return consistent_group([stamp for stamp, _, _ in group],
+                                [float(z[0]) for _, z, _ in group],
+                                [float(R[0, 0]) for _, _, R in group],
+                                self.config.settings.gate_probability)
 
     def _late_control(self, stamp_ns: int, u: np.ndarray) -> Optional[EstimateStep]:
         """Keep a control for fused intervals: rewind to before it and replay."""
@@ -165,7 +192,16 @@ class Fusion:
                              model)
 
     def _initialise(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
-        """Start the filter from this measurement (never gated)."""
+        """Start the filter from this measurement (never gated), or from its group."""
+        group = [fix for fix in self.regroup if fix[0] < stamp_ns]
+        self.regroup = []
+        if group:
+            try:
+                return self._initialise_group(group + [(stamp_ns, z, R)])
+            except Rejected:
+                self.history.clear()  # the group failed numerically: start from this one
+                self.x = self.P = self.last_stamp_ns = None
+                self.locked_out = True
         try:
             x, P, result, u, exact = self._init_state(stamp_ns, z, R, self.config.model)
             predicted = self._predict_ahead(x, P, u)
@@ -177,6 +213,23 @@ class Fusion:
         self.counters.provisional += result is not None and not exact
         self.locked_out = False
         return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
+
+    def _initialise_group(self, group: List[tuple]) -> EstimateStep:
+        """Re-initialise from the fixes of a lock-out and this one: the first, then the rest."""
+        first, *rest = group
+        step = self._initialise(*first)
+        model = self.config.model
+        for stamp_ns, z, R in rest:  # never gated: they agreed with each other
+            try:
+                x, P, result = model.predict_update(
+                    self.x, self.P, (stamp_ns - self.last_stamp_ns) / NS_PER_S, z, R)
+                predicted = self._predict_ahead(x, P)
+            except NUMERICAL_ERRORS as error:
+                self._reject('numerical', f're-initialisation failed: {error}')
+            self._commit(stamp_ns, x, P, 'update', z, R)
+            step = self._step(stamp_ns, x, P, result, predicted, stamp_ns)
+        self.counters.fused -= len(rest)  # the group's own fixes were counted as rejected
+        return step
 
     def _fuse_in_order(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
         """Predict from the newest state to the stamp, gate, update, commit."""
@@ -199,13 +252,13 @@ class Fusion:
                 x, P, u, exact = propagate(self.controls, model, x0, P0, t_a, t_b)
                 x, P, result = model.update(x, P, z, R)
         except NUMERICAL_ERRORS as error:
-            self._reject_update('numerical', f'update failed: {error}')
+            self._reject_update('numerical', f'update failed: {error}', fix=(t_b, z, R))
         threshold = self.config.gate_threshold
         if result.nis > threshold:
             self._reject_update('outlier', (
                 f'NIS {result.nis:.6g} exceeds the gate {threshold:.6g} '
                 f'(gate_probability {self.config.settings.gate_probability}); innovation '
-                f'{np.array2string(result.innovation, precision=6)}'), result)
+                f'{np.array2string(result.innovation, precision=6)}'), result, (t_b, z, R))
         try:
             predicted = self._predict_ahead(x, P, u)
         except NUMERICAL_ERRORS as error:
@@ -272,6 +325,7 @@ class Fusion:
         self.counters.fused += 1
         self.consecutive_outliers = 0
         self.stale_streak = 0
+        self.rejected = []
 
     def _step(self, stamp_ns: int, x: np.ndarray, P: np.ndarray,
               result: Optional[UpdateResult], predicted, measurement_stamp_ns: int,

@@ -1,0 +1,75 @@
+"""Re-acquisition after a lock-out: only a consistent group of fixes restarts the track."""
+
+import dataclasses
+
+from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
+from kf_train.estimator.reacquire import consistent_group
+import pytest
+
+NS = 1_000_000_000
+RAIL = EstimatorSettings(max_consecutive_outliers=5)
+
+
+def _stamps(count: int, start: int = 0):
+    return [NS + (start + k) * NS // 10 for k in range(count)]
+
+
+def test_a_line_within_the_noise_is_consistent_and_scatter_is_not():
+    stamps = _stamps(6)
+    assert consistent_group(stamps, [0.0, 1.0, 2.1, 2.9, 4.0, 5.0], [1.0] * 6, 0.9999)
+    assert not consistent_group(stamps, [0.0, 200.0, -150.0, 10.0, 190.0, 0.0], [1.0] * 6,
+                                0.9999)
+    assert consistent_group(stamps[:2], [0.0, 1e6], [1.0, 1.0], 0.9999)  # two: always
+    assert not consistent_group(stamps[:3], [0.0, float('nan'), 1.0], [1.0] * 3, 0.9999)
+
+
+def _cruising(estimator: StreamEstimator, count: int) -> None:
+    """Feed a train cruising at 10 m/s, fixes exact to 0.1 m."""
+    for k, stamp in enumerate(_stamps(count)):
+        estimator.process(stamp, 1.0 * k + 0.1 * ((-1) ** k), 1.0)
+
+
+def test_scattered_gross_fixes_never_restart_the_track():
+    estimator = StreamEstimator(RAIL)
+    _cruising(estimator, 200)
+    jumps = [300.0, -250.0, 180.0, -320.0, 260.0, -190.0, 310.0, -280.0, 240.0, -300.0]
+    for k, (stamp, jump) in enumerate(zip(_stamps(10, 200), jumps)):
+        with pytest.raises(Rejected) as raised:
+            estimator.process(stamp, 1.0 * (200 + k) + jump, 1.0)
+        assert raised.value.reset is None
+    assert estimator.stats().resets['outlier_lockout'] == 0
+    # The track coasted through them and takes the next good fix.
+    step = estimator.process(_stamps(1, 210)[0], 210.0, 1.0)
+    assert step.x[0] == pytest.approx(210.0, abs=1.0)
+
+
+def test_a_consistent_group_restarts_the_track_from_all_of_its_fixes():
+    estimator = StreamEstimator(RAIL)
+    _cruising(estimator, 200)
+    # The train is really 500 m further on (a missed jump of the map, a restarted
+    # receiver): five fixes in a row agree with each other, and restart the track.
+    moved = [500.0 + 1.0 * k for k in range(200, 206)]
+    for k in range(5):
+        with pytest.raises(Rejected) as raised:
+            estimator.process(_stamps(1, 200 + k)[0], moved[k], 1.0)
+    assert raised.value.reset == 'outlier_lockout'
+    step = estimator.process(_stamps(1, 205)[0], moved[5], 1.0)
+    # Six fixes, not one: the velocity is the group's 10 m/s already.
+    assert step.x[0] == pytest.approx(moved[5], abs=1.0)
+    assert step.x[1] == pytest.approx(10.0, abs=2.0)
+
+
+def test_the_group_restart_is_what_in_order_fusion_of_the_group_gives():
+    settings = dataclasses.replace(RAIL, history_s=0.0)
+    estimator = StreamEstimator(settings)
+    _cruising(estimator, 100)
+    moved = [900.0 + 1.0 * k for k in range(100, 106)]
+    for k in range(5):
+        with pytest.raises(Rejected):
+            estimator.process(_stamps(1, 100 + k)[0], moved[k], 1.0)
+    step = estimator.process(_stamps(1, 105)[0], moved[5], 1.0)
+    fresh = StreamEstimator(dataclasses.replace(settings, gate_probability=1.0,
+                                                initialization='first_measurement'))
+    for k in range(6):
+        expected = fresh.process(_stamps(1, 100 + k)[0], moved[k], 1.0)
+    assert (step.x == expected.x).all() and (step.P == expected.P).all()
