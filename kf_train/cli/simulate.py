@@ -29,7 +29,10 @@ Output (``--output``):
 * ``X.mcap`` or a directory: a rosbag2 MCAP bag with ``measurement``
   (PoseWithCovarianceStamped), ``ground_truth`` (Odometry), for car and robot
   ``control`` (AccelStamped / TwistStamped) and for rail ``ground_truth_accel``
-  (AccelStamped, the true acceleration), the node's types and fields. Each
+  (AccelStamped, the true acceleration), the node's types and fields (with
+  ``rail_gnss_model`` receiver, the default: the variance is each fix's hAcc², and
+  an epoch without a fix has no measurement; the Doppler speed the node publishes
+  on ``velocity`` is not written yet). Each
   message is recorded at its sample time; a measurement delayed by ``delay_s`` at
   sample time + delay_s, a reordered one with the next sample. ``kf-train replay
   X.mcap`` replays it with the estimator node's session.
@@ -80,7 +83,6 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
     stream = make_stream(config.scenario, config.rate_hz, seed, **config.stream)
     faults = FaultInjector(config.faults, seed)
     delay_ns = round(config.faults.delay_s * NS_PER_S)
-    variance = stream.noise_std_m ** 2
     has_control = CONTROL_NAMES[config.scenario] is not None
     clock = config.options.publish_clock
     pending = collections.deque()   # delayed measurements, in due order (a fixed delay)
@@ -94,8 +96,12 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
             yield Event('clock', sample_ns, stamp_ns, sample.index, ())
         if has_control:
             yield Event('control', sample_ns, stamp_ns, sample.index, (sample.control,))
-        deliveries = faults.apply(sample.index, sample.t_s, sample_ns,
-                                  sample.measured_position_m)
+        variance = (stream.noise_std_m ** 2 if sample.measurement_variance_m2 is None
+                    else sample.measurement_variance_m2)   # a receiver's hAcc²
+        deliveries = []  # a receiver's epoch without a fix has nothing to deliver
+        if sample.measured_position_m is not None:
+            deliveries = faults.apply(sample.index, sample.t_s, sample_ns,
+                                      sample.measured_position_m)
         if sample.index == samples:
             deliveries += faults.flush()
         for delivery in deliveries:

@@ -32,6 +32,7 @@ from dataclasses import dataclass, fields
 import math
 from typing import List, NamedTuple, Optional, Tuple
 
+from kf_train.sim.gnss_receiver import GNSS_MODELS, GnssReceiver, GnssReceiverParameters
 from kf_train.sim.scenarios import Scenario
 import numpy as np
 
@@ -366,15 +367,31 @@ def family_parameters(family: str, seed: int) -> RailParameters:
     return FAMILIES[family].draw(_streams(seed)[0])
 
 
+def gnss_receiver(gnss_model: str, receiver: Optional[GnssReceiverParameters],
+                  noise_rng: np.random.Generator) -> Optional[GnssReceiver]:
+    """Return the receiver of a run measured by ``gnss_model`` ('white': None)."""
+    if gnss_model not in GNSS_MODELS:
+        raise ValueError(f"gnss_model must be one of {', '.join(GNSS_MODELS)}, "
+                         f'got {gnss_model!r}')
+    if gnss_model == 'white':
+        return None
+    return GnssReceiver(GnssReceiverParameters() if receiver is None else receiver, noise_rng)
+
+
 def rail_scenario(seed: int = 0, family: str = DEFAULT_FAMILY,
                   parameters: Optional[RailParameters] = None, rate_hz: float = 10.0,
-                  noise_std_m: float = 1.0) -> Tuple[Scenario, RailRun]:
+                  noise_std_m: float = 1.0, gnss_model: str = 'white',
+                  receiver: Optional[GnssReceiverParameters] = None
+                  ) -> Tuple[Scenario, RailRun]:
     """
     Return a run sampled as a :class:`~kf_train.sim.scenarios.Scenario`, and the run.
 
     Without ``parameters`` they are drawn by ``family`` from the seed. Samples are at
-    t_k = k / rate_hz (k = 1 .. duration·rate), measuring the position with noise
-    σ = ``noise_std_m``; the truth has [position, velocity, acceleration].
+    t_k = k / rate_hz (k = 1 .. duration·rate); the truth has [position, velocity,
+    acceleration]. ``gnss_model`` 'white' (the default here, the development runs'
+    model) measures the position with white noise σ = ``noise_std_m``; 'receiver'
+    with :class:`~kf_train.sim.gnss_receiver.GnssReceiver` (``receiver``: its
+    parameters, default calibrated), whose epochs without a fix are left out.
     """
     rate_hz = _number('rate_hz', rate_hz, 1e-3, 1e4)
     noise_std_m = _number('noise_std_m', noise_std_m, 0.0, 1e6)
@@ -384,10 +401,17 @@ def rail_scenario(seed: int = 0, family: str = DEFAULT_FAMILY,
     count = int(math.floor(parameters.duration_s * rate_hz + 1e-9))
     t = np.arange(1, count + 1) / rate_hz
     truth = run.state_at(t)
-    noise = noise_std_m * _streams(seed)[2].standard_normal(count)
-    states = np.column_stack(truth[:3])
+    noise_rng = _streams(seed)[2]
+    receiver_model = gnss_receiver(gnss_model, receiver, noise_rng)
+    if receiver_model is None:
+        z = truth.position_m + noise_std_m * noise_rng.standard_normal(count)
+    else:
+        z = np.array([receiver_model.fix(t_k, p_k, v_k).position_m for t_k, p_k, v_k
+                      in zip(t, truth.position_m, truth.velocity_mps)], dtype=float)
+    rows = np.isfinite(z)  # a receiver's epoch without a fix is no row
+    states = np.column_stack(truth[:3])[rows]
     start = run.state_at(0.0)
-    scenario = Scenario(f'rail-{family}' if family else 'rail', 0.0, t,
-                        (truth.position_m + noise)[:, None], None, states,
+    scenario = Scenario(f'rail-{family}' if family else 'rail', 0.0, t[rows],
+                        z[rows][:, None], None, states,
                         np.array([float(x) for x in start[:3]]), STATE_NAMES, ('position',))
     return scenario, run

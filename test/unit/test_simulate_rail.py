@@ -15,7 +15,8 @@ def test_rail_csv_is_rail_scenario_with_the_true_acceleration(tmp_path):
     """Seed 3, regional: every column is rail_scenario's, to the last digit."""
     path = tmp_path / 'rail.csv'
     assert kf_train_main(['simulate', '--scenario', 'rail', '--seed', '3', '--duration', '60',
-                          '-p', 'rail_family:=regional', '--output', str(path)]) == 0
+                          '-p', 'rail_family:=regional', '-p', 'rail_gnss_model:=white',
+                          '--output', str(path)]) == 0
     with open(path, newline='') as stream:
         rows = list(csv.DictReader(stream))
     assert list(rows[0]) == ['t', 'z_position', 'true_position', 'true_velocity',
@@ -26,6 +27,22 @@ def test_rail_csv_is_rail_scenario_with_the_true_acceleration(tmp_path):
     np.testing.assert_array_equal(table[:, 0], scenario.t_s[:600])
     np.testing.assert_array_equal(table[:, 1], scenario.z[:600, 0])
     np.testing.assert_array_equal(table[:, 2:], scenario.truth[:600])
+
+
+def test_rail_csv_defaults_to_the_receiver(tmp_path):
+    """The default GNSS model is the receiver: rail_scenario(..., gnss_model='receiver')."""
+    path = tmp_path / 'rail.csv'
+    assert kf_train_main(['simulate', '--scenario', 'rail', '--seed', '4', '--duration', '300',
+                          '--output', str(path)]) == 0
+    with open(path, newline='') as stream:
+        rows = list(csv.DictReader(stream))
+    scenario, _ = rail_scenario(4, 'metro', gnss_model='receiver')
+    fixes = [row for row in rows if row['z_position']]
+    count = int(np.sum(scenario.t_s <= 300.0 + 1e-9))
+    assert len(rows) == 3000 and len(fixes) == count
+    np.testing.assert_array_equal([float(row['t']) for row in fixes], scenario.t_s[:count])
+    np.testing.assert_array_equal([float(row['z_position']) for row in fixes],
+                                  scenario.z[:count, 0])
 
 
 def test_rail_bag_carries_ground_truth_accel(tmp_path):
