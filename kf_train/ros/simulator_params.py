@@ -41,8 +41,9 @@ _DRAWN = " 0 (default): drawn from rail_family's range by seed."
 _DRAWN_PAIR = " Max 0 (default): rail_family's range."
 RAIL_PARAMETERS = {
     'rail_accel_mps2': 'accel_mps2', 'rail_brake_mps2': 'brake_mps2',
-    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps'}
-"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0: drawn)."""
+    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps',
+    'rail_texture_speed_mps': 'texture_speed_mps'}
+"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0: drawn; texture 0: none)."""
 RAIL_RANGE_PARAMETERS = {
     'station_spacing_m': ('rail_station_spacing_min_m', 'rail_station_spacing_max_m'),
     'dwell_s': ('rail_dwell_min_s', 'rail_dwell_max_s')}
@@ -117,6 +118,9 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
           (0.0, 1.0), 'm/s³'),
     _rail('rail_line_speed_mps', 0.0, 'cruising speed between stations [m/s] (10-45).'
           + _DRAWN, (0.0, 45.0), 'm/s'),
+    _rail('rail_texture_speed_mps', 0.0, "std of a cruise's small speed changes (gradients, "
+          'traction notches, varying coasting) [m/s] (0-3), about once per 20 s. 0 (default): '
+          'none, the cruise of the runs before.', (0.0, 3.0), 'm/s'),
     _rail('rail_station_spacing_min_m', 0.0, 'shortest station-to-station distance [m] '
           '(>= 100; with rail_station_spacing_max_m).', (0.0, 1e6), 'm'),
     _rail('rail_station_spacing_max_m', 0.0, 'longest station-to-station distance [m] (>= '

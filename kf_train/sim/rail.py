@@ -44,6 +44,8 @@ JERK_RANGE_MPS3 = (0.3, 1.0)
 """Jerk limits a run may have [m/s³] (passenger comfort)."""
 LINE_SPEED_RANGE_MPS = (10.0, 45.0)
 """Line speeds a run may have [m/s]."""
+TEXTURE_ACCEL_MPS2 = (0.05, 0.2)
+"""Range of a textured cruise's speed changes [m/s²] (a 0.5-2 % gradient, a notch)."""
 STATE_NAMES = ('position', 'velocity', 'acceleration')
 
 
@@ -101,6 +103,11 @@ class RailParameters:
     """A cruise coasts once per this many seconds (at least once) [s]."""
     duration_s: float = 600.0
     """Length of the run [s]."""
+    texture_speed_mps: float = 0.0
+    """Std of a cruise's small speed changes (gradients, traction notches) (0-3) [m/s];
+    with it, coasting decelerates at 0.5-1.5 × coast_mps2 (0: none, the old runs)."""
+    texture_every_s: float = 20.0
+    """A textured cruise changes its speed about once per this many seconds (1-1e6) [s]."""
 
     def __post_init__(self):
         """Check every value against its range (tuples are normalised to floats)."""
@@ -108,7 +115,8 @@ class RailParameters:
             'accel_mps2': (0.05, ACCEL_LIMIT_MPS2), 'brake_mps2': (0.05, BRAKE_LIMIT_MPS2),
             'jerk_mps3': JERK_RANGE_MPS3, 'line_speed_mps': LINE_SPEED_RANGE_MPS,
             'slow_zone_probability': (0.0, 1.0), 'coast_mps2': (0.01, 0.5),
-            'coast_every_s': (1.0, 1e6), 'duration_s': (1.0, 1e6)}
+            'coast_every_s': (1.0, 1e6), 'duration_s': (1.0, 1e6),
+            'texture_speed_mps': (0.0, 3.0), 'texture_every_s': (1.0, 1e6)}
         for name, (low, high) in checks.items():
             object.__setattr__(self, name, _number(name, getattr(self, name), low, high))
         intervals = {
@@ -228,21 +236,50 @@ class _Plan:
     def cruise(self, distance_m: float, rng: np.random.Generator) -> None:
         """Cruise distance_m at the current speed, coasting now and then."""
         params, speed = self.parameters, self.v
+        textured = params.texture_speed_mps > 0.0  # draws nothing more without texture
         count = max(1, int(distance_m / speed // params.coast_every_s))
         piece = distance_m / count
         for _ in range(count):
             drop = min(float(rng.uniform(*params.coast_drop_mps)), 0.5 * speed)
-            loop = (change_distance_m(speed, speed - drop, params.coast_mps2, params.jerk_mps3)
-                    + change_distance_m(speed - drop, speed, params.coast_mps2,
-                                        params.jerk_mps3))
+            rate = params.coast_mps2 * (float(rng.uniform(0.5, 1.5)) if textured else 1.0)
+            loop = (change_distance_m(speed, speed - drop, rate, params.jerk_mps3)
+                    + change_distance_m(speed - drop, speed, rate, params.jerk_mps3))
             if drop <= 0.0 or loop > piece:
-                self.hold(piece / speed)
+                self.steady(piece, rng)
                 continue
             before = float(rng.uniform(0.0, piece - loop))
-            self.hold(before / speed)
-            self.change(speed - drop, params.coast_mps2)
-            self.change(speed, params.coast_mps2)
-            self.hold((piece - loop - before) / speed)
+            self.steady(before, rng)
+            self.change(speed - drop, rate)
+            self.change(speed, rate)
+            self.steady(piece - loop - before, rng)
+
+    def steady(self, distance_m: float, rng: np.random.Generator) -> None:
+        """
+        Cover distance_m at the current speed; textured, with small speed changes.
+
+        Texture: once per ``texture_every_s`` the speed moves by N(0, texture_speed_mps)
+        (at most -30 %), holds, and comes back (a gradient, a
+        traction notch), so the cruise still ends at its speed and covers distance_m.
+        The rate is drawn from TEXTURE_ACCEL_MPS2.
+        """
+        params, speed = self.parameters, self.v
+        if params.texture_speed_mps <= 0.0 or speed <= 0.0:
+            self.hold(distance_m / speed)
+            return
+        count = max(1, int(distance_m / speed // params.texture_every_s))
+        piece = distance_m / count
+        for _ in range(count):
+            delta = max(float(rng.normal(0.0, params.texture_speed_mps)), -0.3 * speed)
+            rate = float(rng.uniform(*TEXTURE_ACCEL_MPS2))
+            varied = speed + delta
+            loop_m = (change_distance_m(speed, varied, rate, params.jerk_mps3)
+                      + change_distance_m(varied, speed, rate, params.jerk_mps3))
+            if loop_m >= piece:
+                self.hold(piece / speed)
+                continue
+            self.change(varied, rate)
+            self.hold((piece - loop_m) / varied)
+            self.change(speed, rate)
 
 
 def _section_speed(params: RailParameters, length_m: float) -> float:

@@ -3,9 +3,9 @@ A rail run (:mod:`kf_train.sim.rail`) as a sample-by-sample stream, for the simu
 
 :func:`rail_parameters` gives a run's values: drawn by a family (``metro``,
 ``regional``) from the seed, as :func:`kf_train.sim.rail.family_parameters` draws
-them, with any of acceleration, braking, jerk, line speed, station spacing and dwell
-given explicitly instead. :class:`RailStream` samples that run at t_k = k / rate_hz
-(k = 1, 2, ...) for as long as it is asked to: it plans station after station as the
+them, with any of acceleration, braking, jerk, line speed, station spacing, dwell and
+the cruise's texture given explicitly instead. :class:`RailStream` samples that run
+at t_k = k / rate_hz (k = 1, 2, ...) for as long as it is asked to: it plans station after station as the
 time comes, from the same generator in the same order as
 :func:`kf_train.sim.rail.rail_run`, and draws the measurement noise one sample at a
 time from the same generator as :func:`kf_train.sim.rail.rail_scenario`. So the
@@ -50,7 +50,8 @@ def rail_parameters(family: str = DEFAULT_FAMILY, seed: int = 0, *,
                     accel_mps2: Optional[float] = None, brake_mps2: Optional[float] = None,
                     jerk_mps3: Optional[float] = None, line_speed_mps: Optional[float] = None,
                     station_spacing_m: Optional[Sequence[float]] = None,
-                    dwell_s: Optional[Sequence[float]] = None) -> RailParameters:
+                    dwell_s: Optional[Sequence[float]] = None,
+                    texture_speed_mps: Optional[float] = None) -> RailParameters:
     """
     Return the values of the run ``family`` draws for ``seed``, with the given ones instead.
 
@@ -62,7 +63,7 @@ def rail_parameters(family: str = DEFAULT_FAMILY, seed: int = 0, *,
     given = {'accel_mps2': accel_mps2, 'brake_mps2': brake_mps2, 'jerk_mps3': jerk_mps3,
              'line_speed_mps': line_speed_mps,
              'station_spacing_m': _pair('station_spacing_m', station_spacing_m),
-             'dwell_s': _pair('dwell_s', dwell_s)}
+             'dwell_s': _pair('dwell_s', dwell_s), 'texture_speed_mps': texture_speed_mps}
     return dataclasses.replace(drawn, **{k: v for k, v in given.items() if v is not None})
 
 
