@@ -5,8 +5,8 @@ A rail run (:mod:`kf_train.sim.rail`) as a sample-by-sample stream, for the simu
 ``regional``) from the seed, as :func:`kf_train.sim.rail.family_parameters` draws
 them, with any of acceleration, braking, jerk, line speed, station spacing, dwell and
 the cruise's texture given explicitly instead. :class:`RailStream` samples that run
-at t_k = k / rate_hz (k = 1, 2, ...) for as long as it is asked to: it plans station after station as the
-time comes, from the same generator in the same order as
+at t_k = k / rate_hz (k = 1, 2, ...) for as long as it is asked to: it plans station
+after station as the time comes, from the same generator in the same order as
 :func:`kf_train.sim.rail.rail_run`, and draws the measurement noise one sample at a
 time from the same generator as :func:`kf_train.sim.rail.rail_scenario`. So the
 stream of a seed and its parameters gives exactly the numbers of
