@@ -28,7 +28,8 @@ rate_hz.
   station, dwells, and goes again, for as long as the node runs. ``rail_family``
   (metro, regional) draws the run's values from ``seed``; ``rail_accel_mps2``,
   ``rail_brake_mps2``, ``rail_jerk_mps3``, ``rail_line_speed_mps``,
-  ``rail_station_spacing_m`` and ``rail_dwell_s`` replace them (0 or []: drawn). A
+  ``rail_station_spacing_m`` and ``rail_dwell_s`` replace them (0 or []: drawn);
+  ``rail_texture_speed_mps`` gives the cruise small speed changes (0: none). A
   seed gives exactly the run of ``kf_train.sim.rail_scenario(seed, family,
   gnss_model=...)`` and ``kf-train simulate --scenario rail`` of the same
   ``rail_gnss_model``. Also publishes ``ground_truth_accel``
