@@ -85,7 +85,7 @@ def row_rail_cost(quick: bool) -> List[Row]:
     from kf_train.sim.rail import family_parameters, rail_scenario
     params = dataclasses.replace(family_parameters('metro', 100),
                                  duration_s=30.0 if quick else COST_RUN_S)
-    scenario, _ = rail_scenario(100, 'metro', parameters=params)
+    scenario, _ = rail_scenario(100, 'metro', parameters=params, gnss_model='white')
     train = EstimatorSettings(preset='train', process_noise_density=0.5)
     cases = [('rail IMM (the defaults)', EstimatorSettings(), True, 0.0),
              ('rail IMM, stamps jittered ±2 ms (a new dt every step)', EstimatorSettings(),
@@ -124,7 +124,8 @@ def _cases(quick: bool):
     for family in ('metro', 'regional'):
         seed = EVALUATION_SEEDS[0]
         params = dataclasses.replace(family_parameters(family, seed), duration_s=QUICK_RUN_S)
-        scenario, run = rail_scenario(seed, family, parameters=params)
+        scenario, run = rail_scenario(seed, family, parameters=params,
+                                      gnss_model='white')
         cases.append(RunCase(family, seed, scenario, run))
     return cases
 

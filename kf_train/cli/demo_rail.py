@@ -88,7 +88,7 @@ def plan(seed: int) -> RailPlan:
     samples = int(math.ceil(duration_s * RATE_HZ))
     # The same seed with a shorter duration: the same plan and noise, samples 1..N.
     scenario, _ = rail_scenario(seed, FAMILY, dataclasses.replace(
-        parameters, duration_s=samples / RATE_HZ), RATE_HZ)
+        parameters, duration_s=samples / RATE_HZ), RATE_HZ, gnss_model='white')
     return RailPlan(seed, samples, run, scenario, stop)
 
 
@@ -129,6 +129,7 @@ def _run_nodes(rail: RailPlan, env: Dict[str, str], output_dir: Path, timeout_s:
             '-p', f'qos_depth:={QUEUE_DEPTH}'], env, output_dir)
         children['simulator'] = seed_demo.start('simulator', [
             '-p', 'scenario:=rail', '-p', f'rail_family:={FAMILY}', '-p', f'seed:={rail.seed}',
+            '-p', 'rail_gnss_model:=white',  # the development runs' model, as offline
             '-p', f'rate_hz:={RATE_HZ!r}', '-p', f'real_time_factor:={REAL_TIME_FACTOR!r}',
             '-p', 'publish_clock:=true', '-p', f'max_samples:={rail.samples}',
             '-p', f'min_subscribers:={seed_demo.HOLD_SUBSCRIBERS}'], env, output_dir)

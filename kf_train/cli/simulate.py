@@ -29,14 +29,17 @@ Output (``--output``):
 * ``X.mcap`` or a directory: a rosbag2 MCAP bag with ``measurement``
   (PoseWithCovarianceStamped), ``ground_truth`` (Odometry), for car and robot
   ``control`` (AccelStamped / TwistStamped) and for rail ``ground_truth_accel``
-  (AccelStamped, the true acceleration), the node's types and fields. Each
+  (AccelStamped, the true acceleration), the node's types and fields (with
+  ``rail_gnss_model`` receiver, the default: the variance is each fix's hAcc², and
+  an epoch without a fix has no measurement, and the Doppler speed goes out on
+  ``velocity``, TwistWithCovarianceStamped, as the node publishes it). Each
   message is recorded at its sample time; a measurement delayed by ``delay_s`` at
   sample time + delay_s, a reordered one with the next sample. ``kf-train replay
   X.mcap`` replays it with the estimator node's session.
 * ``X.csv``: one row per sample: ``t`` [s] (the stamp), ``z_position`` (empty when the
-  sample was dropped), ``u`` (scenarios with a control), ``true_position``,
-  ``true_velocity`` and, for rail, ``true_acceleration``. ``kf-train replay X.csv
-  --preset NAME`` reads it (a dropped
+  sample was dropped, or the receiver had no fix; no variance, no Doppler speed),
+  ``u`` (scenarios with a control), ``true_position``, ``true_velocity`` and, for
+  rail, ``true_acceleration``. ``kf-train replay X.csv --preset NAME`` reads it (a dropped
   sample is a row without measurement; a backward clock jump makes ``t`` decrease,
   which a CSV replay refuses).
 
@@ -80,7 +83,6 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
     stream = make_stream(config.scenario, config.rate_hz, seed, **config.stream)
     faults = FaultInjector(config.faults, seed)
     delay_ns = round(config.faults.delay_s * NS_PER_S)
-    variance = stream.noise_std_m ** 2
     has_control = CONTROL_NAMES[config.scenario] is not None
     clock = config.options.publish_clock
     pending = collections.deque()   # delayed measurements, in due order (a fixed delay)
@@ -94,8 +96,12 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
             yield Event('clock', sample_ns, stamp_ns, sample.index, ())
         if has_control:
             yield Event('control', sample_ns, stamp_ns, sample.index, (sample.control,))
-        deliveries = faults.apply(sample.index, sample.t_s, sample_ns,
-                                  sample.measured_position_m)
+        variance = (stream.noise_std_m ** 2 if sample.measurement_variance_m2 is None
+                    else sample.measurement_variance_m2)   # a receiver's hAcc²
+        deliveries = []  # a receiver's epoch without a fix has nothing to deliver
+        if sample.measured_position_m is not None:
+            deliveries = faults.apply(sample.index, sample.t_s, sample_ns,
+                                      sample.measured_position_m)
         if sample.index == samples:
             deliveries += faults.flush()
         for delivery in deliveries:
@@ -105,12 +111,20 @@ def run_events(config, samples: int, start_ns: int = 0) -> Iterator[Event]:
                 pending.append(event)
             else:
                 yield event
+        if sample.doppler_speed_mps is not None:   # as the node: after the measurement
+            yield Event('velocity', sample_ns, stamp_ns, sample.index,
+                        (sample.doppler_speed_mps, sample.doppler_variance_m2_s2))
         yield Event('ground_truth', sample_ns, stamp_ns, sample.index,
                     (sample.true_position_m, sample.true_velocity_mps))
         if sample.true_acceleration_mps2 is not None:
             yield Event('ground_truth_accel', sample_ns, stamp_ns, sample.index,
                         (sample.true_acceleration_mps2,))
     yield from pending
+
+
+def receiver_velocity(config) -> bool:
+    """Return whether the run has a Doppler speed (rail with rail_gnss_model receiver)."""
+    return config.stream.get('rail', {}).get('gnss_model') == 'receiver'
 
 
 def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
@@ -120,7 +134,8 @@ def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
     frame, child = options.frame_id, options.child_frame_id
     with bagio_simulation.SimulationBag(
             path, CONTROL_NAMES[config.scenario], clock=options.publish_clock,
-            truth_acceleration=config.scenario in ACCELERATION_SCENARIOS) as bag:
+            truth_acceleration=config.scenario in ACCELERATION_SCENARIOS,
+            velocity=receiver_velocity(config)) as bag:
         for event in run_events(config, samples, start_ns):
             if event.topic == 'measurement':
                 bag.write_measurement(event.record_ns, event.stamp_ns, frame, *event.values)
@@ -128,6 +143,8 @@ def write_bag(config, samples: int, path: str, start_ns: int) -> dict:
                 bag.write_control(event.record_ns, event.stamp_ns, child, *event.values)
             elif event.topic == 'clock':
                 bag.write_clock(event.record_ns, event.stamp_ns)
+            elif event.topic == 'velocity':
+                bag.write_velocity(event.record_ns, event.stamp_ns, child, *event.values)
             elif event.topic == 'ground_truth_accel':
                 bag.write_truth_accel(event.record_ns, event.stamp_ns, child, *event.values)
             else:
@@ -150,6 +167,8 @@ def _csv_chunks(config, samples: int, start_ns: int, counts: dict) -> Iterator[s
         if event.topic == 'measurement':
             measured[event.index] = event.values[0]
             counts['measurement'] += 1
+        elif event.topic == 'velocity':
+            continue  # not a CSV column yet (a bag has it)
         else:
             rows.setdefault(event.index, [event.stamp_ns]).extend(event.values)
             counts[event.topic] += 1

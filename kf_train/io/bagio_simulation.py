@@ -12,6 +12,10 @@ the node publishes (:mod:`kf_train.ros.simulator_node`, kf_train/ros/messages.py
   or geometry_msgs/msg/TwistStamped (``twist.linear.x``), frame ``child_frame_id``;
 * ``ground_truth_accel`` (scenarios with a true acceleration: rail):
   geometry_msgs/msg/AccelStamped, ``accel.linear.x`` [m/s²], frame ``child_frame_id``;
+* ``velocity`` (with ``velocity=True``: the rail GNSS receiver's Doppler speed):
+  geometry_msgs/msg/TwistWithCovarianceStamped, ``twist.twist.linear.x`` [m/s],
+  variance in ``twist.covariance[0]``, every other diagonal entry 1e9, frame
+  ``child_frame_id``;
 * ``/clock`` (with ``clock=True``, as ``publish_clock``): rosgraph_msgs/msg/Clock.
 
 Each message is one serialized by rosbags once per type and frame, its numbers
@@ -34,7 +38,8 @@ from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
 from kf_train.io.bagio_output import (
     _stamp_error, AtomicBag, header_message, ODOMETRY_FIELDS, odometry_message, topic_prefix)
-from kf_train.io.bagio_types import ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST, TYPESTORE
+from kf_train.io.bagio_types import (
+    ACCEL, CONTROL_TYPES, ODOMETRY, POSE, TWIST, TWIST_COVARIANCE, TYPESTORE)
 import numpy as np
 
 _T = TYPESTORE.types
@@ -43,6 +48,8 @@ MEASUREMENT_FIELDS = _STAMP + ((('pose', 'pose', 'position', 'x'), 'd'),
                                (('pose', 'covariance', 0), 'd'))
 CLOCK = 'rosgraph_msgs/msg/Clock'
 CLOCK_FIELDS = ((('clock', 'sec'), 'i'), (('clock', 'nanosec'), 'I'))
+VELOCITY_FIELDS = _STAMP + ((('twist', 'twist', 'linear', 'x'), 'd'),
+                            (('twist', 'covariance', 0), 'd'))
 CONTROL_FIELDS = {ACCEL: _STAMP + ((('accel', 'linear', 'x'), 'd'),),
                   TWIST: _STAMP + ((('twist', 'linear', 'x'), 'd'),)}
 
@@ -69,12 +76,19 @@ def control_message(kind: str, stamp_ns: int, frame_id: str, value: float):
                      twist=_T['geometry_msgs/msg/Twist'](linear=_vector3(value), angular=zero))
 
 
+def velocity_message(stamp_ns: int, frame_id: str, speed_mps: float, variance_m2_s2: float):
+    """Return the TwistWithCovarianceStamped the simulator publishes on ``velocity``."""
+    twist = odometry_message(stamp_ns, frame_id, '', [0.0, speed_mps],
+                             np.diag([0.0, variance_m2_s2])).twist
+    return _T[TWIST_COVARIANCE](header=header_message(stamp_ns, frame_id), twist=twist)
+
+
 class SimulationBag(AtomicBag):
     """A simulated run being written; use as a context manager (see the module doc)."""
 
     def __init__(self, path: Union[str, Path], control_name: Optional[str],
                  namespace: str = '', clock: bool = False,
-                 truth_acceleration: bool = False):
+                 truth_acceleration: bool = False, velocity: bool = False):
         """Create the temporary bag for ``path``; ValueError if it cannot be written."""
         if clock and CLOCK not in TYPESTORE.types:
             raise ValueError(f'publish_clock: the rosbags typestore has no {CLOCK}')
@@ -87,6 +101,8 @@ class SimulationBag(AtomicBag):
                 topics.append(('control', self.control_type))
             if truth_acceleration:
                 topics.append(('ground_truth_accel', ACCEL))
+            if velocity:
+                topics.append(('velocity', TWIST_COVARIANCE))
             if clock:
                 topics.append(('/clock', CLOCK))
             self._connections = {
@@ -132,6 +148,9 @@ class SimulationBag(AtomicBag):
         if topic == 'clock':
             return PatchTemplate(_T[CLOCK](clock=_T['builtin_interfaces/msg/Time'](
                 sec=0, nanosec=0)), CLOCK, CLOCK_FIELDS)
+        if topic == 'velocity':
+            return PatchTemplate(velocity_message(0, frames[0], 0.0, 0.0), TWIST_COVARIANCE,
+                                 VELOCITY_FIELDS)
         if topic == 'ground_truth_accel':
             return PatchTemplate(control_message(ACCEL, 0, frames[0], 0.0), ACCEL,
                                  CONTROL_FIELDS[ACCEL])
@@ -163,3 +182,9 @@ class SimulationBag(AtomicBag):
         """Write the true acceleration (AccelStamped, accel.linear.x)."""
         self._write_filled('ground_truth_accel', (frame_id,), record_ns, stamp_ns,
                            float(acceleration_mps2))
+
+    def write_velocity(self, record_ns: int, stamp_ns: int, frame_id: str, speed_mps: float,
+                       variance_m2_s2: float) -> None:
+        """Write a measured speed with its variance (TwistWithCovarianceStamped)."""
+        self._write_filled('velocity', (frame_id,), record_ns, stamp_ns, float(speed_mps),
+                           float(variance_m2_s2))

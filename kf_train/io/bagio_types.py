@@ -6,6 +6,7 @@ POSE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 ACCEL = 'geometry_msgs/msg/AccelStamped'
 TWIST = 'geometry_msgs/msg/TwistStamped'
+TWIST_COVARIANCE = 'geometry_msgs/msg/TwistWithCovarianceStamped'
 VECTOR3 = 'geometry_msgs/msg/Vector3Stamped'
 DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
 

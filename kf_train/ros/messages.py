@@ -27,6 +27,11 @@ The only module that knows message layouts. Conventions (REP 103/105):
   geometry_msgs/TwistStamped ``twist.linear.x`` [m/s]; every other field 0, frame the
   body frame (``child_frame_id``, x along the track). Stamped t_k, a control is the
   input applied over the interval (t_{k-1}, t_k] that ends at its stamp.
+* A measured speed with its variance (topic ``velocity``, a GNSS receiver's Doppler
+  speed, as the u-blox and NMEA drivers publish it): geometry_msgs/
+  TwistWithCovarianceStamped, ``twist.twist.linear.x`` [m/s] in the body frame
+  (x along the track), variance ``twist.covariance[0]`` [m²/s²], the other diagonal
+  entries :data:`UNESTIMATED_VARIANCE` (:func:`to_velocity_msg`).
 * A state of one component (the robot's position) goes out as an Odometry whose
   twist is not estimated: ``twist.twist.linear.x`` 0 with variance
   :data:`UNESTIMATED_VARIANCE`.
@@ -42,7 +47,8 @@ from typing import List, NamedTuple, Sequence, Tuple
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import (
-    AccelStamped, PoseWithCovarianceStamped, TwistStamped, Vector3Stamped)
+    AccelStamped, PoseWithCovarianceStamped, TwistStamped, TwistWithCovarianceStamped,
+    Vector3Stamped)
 from kf_train.estimator import NS_PER_S
 from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message
@@ -325,6 +331,17 @@ def from_twist_msg(msg: TwistStamped) -> Control:
     """Return the stamp, frame and twist.linear.x [m/s] of a TwistStamped."""
     return Control(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
                    float(msg.twist.linear.x))
+
+
+def to_velocity_msg(stamp_ns: int, frame_id: str, speed_mps: float,
+                    variance_m2_s2: float) -> TwistWithCovarianceStamped:
+    """Return a measured speed [m/s] in twist.linear.x, its variance in covariance[0]."""
+    msg = TwistWithCovarianceStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.twist.twist.linear.x = float(speed_mps)
+    msg.twist.covariance = covariance_6x6(variance_m2_s2)
+    return msg
 
 
 CONTROL_MESSAGES = {'acceleration': (AccelStamped, to_accel_msg, from_accel_msg),

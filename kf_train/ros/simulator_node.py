@@ -28,12 +28,21 @@ rate_hz.
   station, dwells, and goes again, for as long as the node runs. ``rail_family``
   (metro, regional) draws the run's values from ``seed``; ``rail_accel_mps2``,
   ``rail_brake_mps2``, ``rail_jerk_mps3``, ``rail_line_speed_mps``,
-  ``rail_station_spacing_m`` and ``rail_dwell_s`` replace them (0 or []: drawn). A
-  seed gives exactly the run of ``kf_train.sim.rail_scenario(seed, family)`` and
-  ``kf-train simulate --scenario rail``. Also publishes ``ground_truth_accel``
+  ``rail_station_spacing_m`` and ``rail_dwell_s`` replace them (0 or []: drawn);
+  ``rail_texture_speed_mps`` gives the cruise small speed changes (0: none). A
+  seed gives exactly the run of ``kf_train.sim.rail_scenario(seed, family,
+  gnss_model=...)`` and ``kf-train simulate --scenario rail`` of the same
+  ``rail_gnss_model``. Also publishes ``ground_truth_accel``
   (geometry_msgs/AccelStamped, the true acceleration in ``accel.linear.x`` [m/s²],
   frame ``child_frame_id``: the body's x axis is along the track), stamped as the
   ground truth. ``true_velocity`` is not used (the run starts standing).
+  ``rail_gnss_model`` (default ``receiver``) measures the position as a real GNSS
+  receiver does (:mod:`kf_train.sim.gnss_receiver`): each measurement's variance is
+  the reported hAcc² (not ``noise_std``²), an epoch without a fix publishes no
+  measurement, and the Doppler speed goes out on ``velocity``
+  (geometry_msgs/TwistWithCovarianceStamped, ``twist.twist.linear.x`` [m/s], variance
+  speedAcc² in ``twist.covariance[0]``, frame ``child_frame_id``), stamped as the
+  measurement, right after it. ``white``: white noise of ``noise_std``, as before.
 * ``noise_std``, ``initial_position`` and ``true_velocity`` default to the scenario's
   values (train: 1 m, 0 m, 10 m/s; car: 1 m, 0.2 m, 0 m/s; robot: 0.03 m, 0 m;
   rail: 1 m, 0 m).
@@ -65,7 +74,8 @@ sample's stamp on ``/clock`` (rosgraph_msgs/Clock), so that nodes with
 
 import heapq
 
-from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import (
+    AccelStamped, PoseWithCovarianceStamped, TwistWithCovarianceStamped)
 from kf_train.filters import NS_PER_S
 from kf_train.ros import messages
 from kf_train.ros.lifecycle import node_factory
@@ -116,6 +126,9 @@ class SimulatorNode(Node):
 
         self.measurement_pub = self._publisher(PoseWithCovarianceStamped, 'measurement')
         self.truth_pub = self._publisher(Odometry, 'ground_truth')
+        self.velocity_pub = None
+        if config.stream.get('rail', {}).get('gnss_model') == 'receiver':
+            self.velocity_pub = self._publisher(TwistWithCovarianceStamped, 'velocity')
         self.truth_accel_pub = None
         if self.scenario in ACCELERATION_SCENARIOS:
             self.truth_accel_pub = self._publisher(AccelStamped, 'ground_truth_accel')
@@ -173,7 +186,8 @@ class SimulatorNode(Node):
                               - round(NS_PER_S / self.rate_hz))
         sample = self.simulation.next_sample()
         stamp_ns = self._start_ns + round(sample.index * NS_PER_S / self.rate_hz)
-        variance = self.simulation.noise_std_m ** 2
+        variance = (self.simulation.noise_std_m ** 2 if sample.measurement_variance_m2 is None
+                    else sample.measurement_variance_m2)
         truth_stamp_ns = self.faults.jumped_stamp_ns(sample.t_s, stamp_ns)
         if options.publish_clock:
             if self.clock_pub is None:
@@ -183,8 +197,10 @@ class SimulatorNode(Node):
             # The input over (t_{k-1}, t_k], stamped t_k, out before the measurement t_k.
             self.control_pub.publish(self._control_msg(
                 truth_stamp_ns, options.child_frame_id, sample.control))
-        deliveries = self.faults.apply(sample.index, sample.t_s, stamp_ns,
-                                       sample.measured_position_m)
+        deliveries = []  # a receiver's epoch without a fix has nothing to deliver
+        if sample.measured_position_m is not None:
+            deliveries = self.faults.apply(sample.index, sample.t_s, stamp_ns,
+                                           sample.measured_position_m)
         self.published += 1
         if options.max_samples and self.published >= options.max_samples:
             deliveries += self.faults.flush()
@@ -193,6 +209,10 @@ class SimulatorNode(Node):
         for delivery in deliveries:
             self._send(messages.to_measurement_msg(
                 delivery.stamp_ns, options.frame_id, delivery.position_m, variance))
+        if self.velocity_pub is not None and sample.doppler_speed_mps is not None:
+            self.velocity_pub.publish(messages.to_velocity_msg(
+                truth_stamp_ns, options.child_frame_id, sample.doppler_speed_mps,
+                sample.doppler_variance_m2_s2))
         self.truth_pub.publish(messages.to_odometry_msg(
             truth_stamp_ns, options.frame_id, options.child_frame_id, sample.true_position_m,
             sample.true_velocity_mps, 0.0, 0.0))
@@ -245,6 +265,8 @@ class SimulatorNode(Node):
         flush_timeout = Duration(nanoseconds=int(FLUSH_TIMEOUT_S * NS_PER_S))
         self.measurement_pub.wait_for_all_acked(timeout=flush_timeout)
         self.truth_pub.wait_for_all_acked(timeout=flush_timeout)
+        if self.velocity_pub is not None:
+            self.velocity_pub.wait_for_all_acked(timeout=flush_timeout)
         if self.truth_accel_pub is not None:
             self.truth_accel_pub.wait_for_all_acked(timeout=flush_timeout)
         if self.control_pub is not None:

@@ -11,8 +11,9 @@ from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 from kf_train.ros.param_spec import (
     BIG, MANAGED_DESCRIPTION, ParameterError, ParamSpec, ParamTable)
 from kf_train.sim import (
-    CAR_ACCELERATION_MPS2, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M, DEFAULT_RAIL_FAMILY,
-    FaultSettings, RAIL_FAMILIES, rail_parameters, ROBOT_SPEED_STD_MPS, SCENARIOS)
+    CAR_ACCELERATION_MPS2, DEFAULT_GNSS_MODEL, DEFAULT_INITIAL_STATE, DEFAULT_NOISE_STD_M,
+    DEFAULT_RAIL_FAMILY, FaultSettings, GNSS_MODELS, RAIL_FAMILIES, rail_parameters,
+    ROBOT_SPEED_STD_MPS, SCENARIOS)
 
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 FAULT_PARAMETERS = {
@@ -40,8 +41,9 @@ _DRAWN = " 0 (default): drawn from rail_family's range by seed."
 _DRAWN_PAIR = " Max 0 (default): rail_family's range."
 RAIL_PARAMETERS = {
     'rail_accel_mps2': 'accel_mps2', 'rail_brake_mps2': 'brake_mps2',
-    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps'}
-"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0: drawn)."""
+    'rail_jerk_mps3': 'jerk_mps3', 'rail_line_speed_mps': 'line_speed_mps',
+    'rail_texture_speed_mps': 'texture_speed_mps'}
+"""Rail parameter -> keyword of kf_train.sim.rail_parameters (0: drawn; texture 0: none)."""
 RAIL_RANGE_PARAMETERS = {
     'station_spacing_m': ('rail_station_spacing_min_m', 'rail_station_spacing_max_m'),
     'dwell_s': ('rail_dwell_min_s', 'rail_dwell_max_s')}
@@ -100,6 +102,14 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
               'stations 600-1500 m apart, dwell 15-40 s) or regional (0.4-0.9, 0.5-1.1, '
               '0.3-0.7, 30-45 m/s, 2500-8000 m, 30-90 s). ' + _FIXED, choices=RAIL_FAMILIES,
               live=False, group=_G_RAIL),
+    ParamSpec('rail_gnss_model', 'string', DEFAULT_GNSS_MODEL,
+              'rail: the GNSS error model. receiver (default): a real receiver, calibrated '
+              'to u-blox M8N logs of a train (kf_train.sim.gnss_receiver): a slow, '
+              'time-correlated error, position hold at standstill, the reported hAcc² as '
+              'the measurement variance, a Doppler speed published on velocity '
+              '(TwistWithCovarianceStamped, variance speedAcc²), dropped epochs, outages, '
+              'multipath jumps, a cold start. white: white noise of noise_std, as before. '
+              + _FIXED, choices=GNSS_MODELS, live=False, group=_G_RAIL),
     _rail('rail_accel_mps2', 0.0, 'acceleration held on leaving a station [m/s²] '
           '(0.05-1.3).' + _DRAWN, (0.0, 1.3), 'm/s²'),
     _rail('rail_brake_mps2', 0.0, 'service braking [m/s²] (0.05-1.5).' + _DRAWN,
@@ -108,6 +118,9 @@ PARAMETERS = ParamTable('simulator', key='scenario', specs=(
           (0.0, 1.0), 'm/s³'),
     _rail('rail_line_speed_mps', 0.0, 'cruising speed between stations [m/s] (10-45).'
           + _DRAWN, (0.0, 45.0), 'm/s'),
+    _rail('rail_texture_speed_mps', 0.0, "std of a cruise's small speed changes (gradients, "
+          'traction notches, varying coasting) [m/s] (0-3), about once per 20 s. 0 (default): '
+          'none, the cruise of the runs before.', (0.0, 3.0), 'm/s'),
     _rail('rail_station_spacing_min_m', 0.0, 'shortest station-to-station distance [m] '
           '(>= 100; with rail_station_spacing_max_m).', (0.0, 1e6), 'm'),
     _rail('rail_station_spacing_max_m', 0.0, 'longest station-to-station distance [m] (>= '
@@ -229,6 +242,7 @@ def rail_options(values: Mapping[str, Any]) -> Dict[str, Any]:
     except ValueError as error:
         name = next((n for n, k in names.items() if k in str(error)), 'rail')
         raise ParameterError(f'{name}: {error}') from None
+    options['gnss_model'] = values['rail_gnss_model']
     return options
 
 

@@ -8,6 +8,8 @@ simulator node's live streams (:data:`SCENARIOS`, the rail run of
 scoring (:mod:`~kf_train.sim.rail_eval`) and its hindsight-tuned CV/CA baselines
 (:mod:`~kf_train.sim.rail_baselines`); :class:`FaultInjector` its seeded
 faults; :mod:`~kf_train.sim.baselines` the seeds' naive estimators;
+the rail scenario's GNSS receiver error model (:mod:`~kf_train.sim.gnss_receiver`,
+:mod:`~kf_train.sim.gnss_error`);
 :func:`white_noise_acceleration_scenario` a train under random force with known q and
 R (the data of the noise-estimation tests). Built on
 :mod:`kf_train.filters` and :mod:`kf_train.presets` only.
@@ -16,6 +18,9 @@ R (the data of the noise-estimation tests). Built on
 from kf_train.sim import baselines
 from kf_train.sim.baselines import extrapolate, raw_difference_velocity, running_average
 from kf_train.sim.faults import Delivery, FAULT_STREAM, FaultInjector, FaultSettings
+from kf_train.sim.gnss_receiver import (
+    DEFAULT_GNSS_MODEL, GNSS_MODELS, GnssFix, GnssReceiver, GnssReceiverParameters,
+    structure_function)
 from kf_train.sim.noise_simulation import white_noise_acceleration_scenario
 from kf_train.sim.rail import DEFAULT_FAMILY as DEFAULT_RAIL_FAMILY
 from kf_train.sim.rail import FAMILIES as RAIL_FAMILY_RANGES
@@ -38,7 +43,9 @@ from kf_train.sim.scenarios import (
 from kf_train.sim.simulation import TrainSample, TrainSeries, TrainSimulation
 
 __all__ = [
-    'ACCELERATION_SCENARIOS', 'DEFAULT_RAIL_FAMILY', 'PolynomialKF', 'RAIL_FAMILIES',
+    'ACCELERATION_SCENARIOS', 'DEFAULT_GNSS_MODEL', 'DEFAULT_RAIL_FAMILY', 'GNSS_MODELS',
+    'GnssFix', 'GnssReceiver', 'GnssReceiverParameters', 'structure_function',
+    'PolynomialKF', 'RAIL_FAMILIES',
     'RAIL_FAMILY_RANGES',
     'RAIL_HORIZON_S', 'rail_parameters', 'rail_run', 'rail_scenario', 'RAIL_WARMUP_S',
     'RailParameters', 'RailRun', 'RailStream', 'Score', 'score_predictions', 'Track',

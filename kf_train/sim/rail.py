@@ -32,6 +32,7 @@ from dataclasses import dataclass, fields
 import math
 from typing import List, NamedTuple, Optional, Tuple
 
+from kf_train.sim.gnss_receiver import GNSS_MODELS, GnssReceiver, GnssReceiverParameters
 from kf_train.sim.scenarios import Scenario
 import numpy as np
 
@@ -43,6 +44,8 @@ JERK_RANGE_MPS3 = (0.3, 1.0)
 """Jerk limits a run may have [m/s³] (passenger comfort)."""
 LINE_SPEED_RANGE_MPS = (10.0, 45.0)
 """Line speeds a run may have [m/s]."""
+TEXTURE_ACCEL_MPS2 = (0.05, 0.2)
+"""Range of a textured cruise's speed changes [m/s²] (a 0.5-2 % gradient, a notch)."""
 STATE_NAMES = ('position', 'velocity', 'acceleration')
 
 
@@ -100,6 +103,11 @@ class RailParameters:
     """A cruise coasts once per this many seconds (at least once) [s]."""
     duration_s: float = 600.0
     """Length of the run [s]."""
+    texture_speed_mps: float = 0.0
+    """Std of a cruise's small speed changes (gradients, traction notches) (0-3) [m/s];
+    with it, coasting decelerates at 0.5-1.5 × coast_mps2 (0: none, the old runs)."""
+    texture_every_s: float = 20.0
+    """A textured cruise changes its speed about once per this many seconds (1-1e6) [s]."""
 
     def __post_init__(self):
         """Check every value against its range (tuples are normalised to floats)."""
@@ -107,7 +115,8 @@ class RailParameters:
             'accel_mps2': (0.05, ACCEL_LIMIT_MPS2), 'brake_mps2': (0.05, BRAKE_LIMIT_MPS2),
             'jerk_mps3': JERK_RANGE_MPS3, 'line_speed_mps': LINE_SPEED_RANGE_MPS,
             'slow_zone_probability': (0.0, 1.0), 'coast_mps2': (0.01, 0.5),
-            'coast_every_s': (1.0, 1e6), 'duration_s': (1.0, 1e6)}
+            'coast_every_s': (1.0, 1e6), 'duration_s': (1.0, 1e6),
+            'texture_speed_mps': (0.0, 3.0), 'texture_every_s': (1.0, 1e6)}
         for name, (low, high) in checks.items():
             object.__setattr__(self, name, _number(name, getattr(self, name), low, high))
         intervals = {
@@ -227,21 +236,50 @@ class _Plan:
     def cruise(self, distance_m: float, rng: np.random.Generator) -> None:
         """Cruise distance_m at the current speed, coasting now and then."""
         params, speed = self.parameters, self.v
+        textured = params.texture_speed_mps > 0.0  # draws nothing more without texture
         count = max(1, int(distance_m / speed // params.coast_every_s))
         piece = distance_m / count
         for _ in range(count):
             drop = min(float(rng.uniform(*params.coast_drop_mps)), 0.5 * speed)
-            loop = (change_distance_m(speed, speed - drop, params.coast_mps2, params.jerk_mps3)
-                    + change_distance_m(speed - drop, speed, params.coast_mps2,
-                                        params.jerk_mps3))
+            rate = params.coast_mps2 * (float(rng.uniform(0.5, 1.5)) if textured else 1.0)
+            loop = (change_distance_m(speed, speed - drop, rate, params.jerk_mps3)
+                    + change_distance_m(speed - drop, speed, rate, params.jerk_mps3))
             if drop <= 0.0 or loop > piece:
-                self.hold(piece / speed)
+                self.steady(piece, rng)
                 continue
             before = float(rng.uniform(0.0, piece - loop))
-            self.hold(before / speed)
-            self.change(speed - drop, params.coast_mps2)
-            self.change(speed, params.coast_mps2)
-            self.hold((piece - loop - before) / speed)
+            self.steady(before, rng)
+            self.change(speed - drop, rate)
+            self.change(speed, rate)
+            self.steady(piece - loop - before, rng)
+
+    def steady(self, distance_m: float, rng: np.random.Generator) -> None:
+        """
+        Cover distance_m at the current speed; textured, with small speed changes.
+
+        Texture: once per ``texture_every_s`` the speed moves by N(0, texture_speed_mps)
+        (at most -30 %), holds, and comes back (a gradient, a
+        traction notch), so the cruise still ends at its speed and covers distance_m.
+        The rate is drawn from TEXTURE_ACCEL_MPS2.
+        """
+        params, speed = self.parameters, self.v
+        if params.texture_speed_mps <= 0.0 or speed <= 0.0:
+            self.hold(distance_m / speed)
+            return
+        count = max(1, int(distance_m / speed // params.texture_every_s))
+        piece = distance_m / count
+        for _ in range(count):
+            delta = max(float(rng.normal(0.0, params.texture_speed_mps)), -0.3 * speed)
+            rate = float(rng.uniform(*TEXTURE_ACCEL_MPS2))
+            varied = speed + delta
+            loop_m = (change_distance_m(speed, varied, rate, params.jerk_mps3)
+                      + change_distance_m(varied, speed, rate, params.jerk_mps3))
+            if loop_m >= piece:
+                self.hold(piece / speed)
+                continue
+            self.change(varied, rate)
+            self.hold((piece - loop_m) / varied)
+            self.change(speed, rate)
 
 
 def _section_speed(params: RailParameters, length_m: float) -> float:
@@ -366,15 +404,31 @@ def family_parameters(family: str, seed: int) -> RailParameters:
     return FAMILIES[family].draw(_streams(seed)[0])
 
 
+def gnss_receiver(gnss_model: str, receiver: Optional[GnssReceiverParameters],
+                  noise_rng: np.random.Generator) -> Optional[GnssReceiver]:
+    """Return the receiver of a run measured by ``gnss_model`` ('white': None)."""
+    if gnss_model not in GNSS_MODELS:
+        raise ValueError(f"gnss_model must be one of {', '.join(GNSS_MODELS)}, "
+                         f'got {gnss_model!r}')
+    if gnss_model == 'white':
+        return None
+    return GnssReceiver(GnssReceiverParameters() if receiver is None else receiver, noise_rng)
+
+
 def rail_scenario(seed: int = 0, family: str = DEFAULT_FAMILY,
                   parameters: Optional[RailParameters] = None, rate_hz: float = 10.0,
-                  noise_std_m: float = 1.0) -> Tuple[Scenario, RailRun]:
+                  noise_std_m: float = 1.0, gnss_model: str = 'white',
+                  receiver: Optional[GnssReceiverParameters] = None
+                  ) -> Tuple[Scenario, RailRun]:
     """
     Return a run sampled as a :class:`~kf_train.sim.scenarios.Scenario`, and the run.
 
     Without ``parameters`` they are drawn by ``family`` from the seed. Samples are at
-    t_k = k / rate_hz (k = 1 .. duration·rate), measuring the position with noise
-    σ = ``noise_std_m``; the truth has [position, velocity, acceleration].
+    t_k = k / rate_hz (k = 1 .. duration·rate); the truth has [position, velocity,
+    acceleration]. ``gnss_model`` 'white' (the default here, the development runs'
+    model) measures the position with white noise σ = ``noise_std_m``; 'receiver'
+    with :class:`~kf_train.sim.gnss_receiver.GnssReceiver` (``receiver``: its
+    parameters, default calibrated), whose epochs without a fix are left out.
     """
     rate_hz = _number('rate_hz', rate_hz, 1e-3, 1e4)
     noise_std_m = _number('noise_std_m', noise_std_m, 0.0, 1e6)
@@ -384,10 +438,17 @@ def rail_scenario(seed: int = 0, family: str = DEFAULT_FAMILY,
     count = int(math.floor(parameters.duration_s * rate_hz + 1e-9))
     t = np.arange(1, count + 1) / rate_hz
     truth = run.state_at(t)
-    noise = noise_std_m * _streams(seed)[2].standard_normal(count)
-    states = np.column_stack(truth[:3])
+    noise_rng = _streams(seed)[2]
+    receiver_model = gnss_receiver(gnss_model, receiver, noise_rng)
+    if receiver_model is None:
+        z = truth.position_m + noise_std_m * noise_rng.standard_normal(count)
+    else:
+        z = np.array([receiver_model.fix(t_k, p_k, v_k).position_m for t_k, p_k, v_k
+                      in zip(t, truth.position_m, truth.velocity_mps)], dtype=float)
+    rows = np.isfinite(z)  # a receiver's epoch without a fix is no row
+    states = np.column_stack(truth[:3])[rows]
     start = run.state_at(0.0)
-    scenario = Scenario(f'rail-{family}' if family else 'rail', 0.0, t,
-                        (truth.position_m + noise)[:, None], None, states,
+    scenario = Scenario(f'rail-{family}' if family else 'rail', 0.0, t[rows],
+                        z[rows][:, None], None, states,
                         np.array([float(x) for x in start[:3]]), STATE_NAMES, ('position',))
     return scenario, run

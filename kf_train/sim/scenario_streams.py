@@ -27,7 +27,10 @@ docs/presets.md), or None.
   run through stations (accelerate, cruise, slow zones, brake, dwell), starting at a
   station; its values drawn by ``rail_family`` from the seed unless given (``rail``:
   the keyword arguments of :func:`kf_train.sim.rail_stream.rail_parameters`). Its
-  samples carry the true acceleration.
+  samples carry the true acceleration. ``gnss_model`` (in ``rail``) measures the
+  position with white noise ('white', the default here) or with the GNSS receiver
+  of :mod:`kf_train.sim.gnss_receiver` ('receiver': hAcc², Doppler speed and
+  speedAcc² on each sample, no position at an epoch without a fix).
 """
 
 from typing import Mapping, Optional
@@ -181,7 +184,8 @@ def make_stream(scenario: str, rate_hz: float, seed: Optional[int], *,
 
     ``velocity_mps`` is the train's constant velocity or the car's initial one (the
     robot's follows its trajectory, the rail run's its plan). ``seed`` None draws fresh
-    entropy. ``rail``: ``family`` and the keyword arguments of
+    entropy. ``rail``: ``family``, ``gnss_model`` ('white' or 'receiver'), ``receiver``
+    (its GnssReceiverParameters) and the keyword arguments of
     :func:`kf_train.sim.rail_stream.rail_parameters` (rail only).
     """
     if scenario not in SCENARIOS:
@@ -195,9 +199,12 @@ def make_stream(scenario: str, rate_hz: float, seed: Optional[int], *,
     if scenario == 'rail':
         rail = dict(rail or {})
         family = rail.pop('family', DEFAULT_FAMILY)
+        gnss_model = rail.pop('gnss_model', 'white')
+        receiver = rail.pop('receiver', None)
         seed = _rail_seed(seed)
         return RailStream(rate_hz, seed, noise, position,
-                          rail_parameters(family, seed, **rail))
+                          rail_parameters(family, seed, **rail), gnss_model=gnss_model,
+                          receiver=receiver)
     if scenario == 'train':
         return TrainStream(TrainSimulation(position, velocity, noise, rate_hz, seed))
     if scenario in ('car', 'car-exact'):

@@ -3,6 +3,9 @@ The rail scenario and the regime probabilities through the nodes (issue 11).
 
 * The simulator's ``scenario:=rail`` publishes the run of the offline stream, the true
   acceleration on ``ground_truth_accel`` included, stamped as the ground truth.
+* With ``rail_gnss_model`` receiver (the default) the measurements are the offline
+  receiver's, each with its hAcc² as the variance, and its Doppler speed goes out on
+  ``velocity`` with speedAcc².
 * The estimator with ``preset:=rail`` publishes ``regime_probabilities`` after every
   estimate, the same numbers ``kf-train replay BAG`` writes into its output bag, and
   puts them into ``/diagnostics``; presets without regimes have no such topic.
@@ -11,7 +14,8 @@ The rail scenario and the regime probabilities through the nodes (issue 11).
 import os
 import time
 
-from geometry_msgs.msg import AccelStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import (
+    AccelStamped, PoseWithCovarianceStamped, TwistWithCovarianceStamped)
 from kf_train.cli import main as kf_train_main
 from kf_train.io.bagio_simulation import measurement_message
 from kf_train.io.bagio_types import POSE, TYPESTORE
@@ -51,7 +55,7 @@ def test_the_rail_simulator_publishes_the_offline_run_and_its_acceleration(
         Parameter('scenario', value='rail'), Parameter('seed', value=5),
         Parameter('rail_family', value='regional'), Parameter('rate_hz', value=10.0),
         Parameter('rail_line_speed_mps', value=30.0), Parameter('rail_dwell_min_s', value=1.0),
-        Parameter('rail_dwell_max_s', value=2.0),
+        Parameter('rail_dwell_max_s', value=2.0), Parameter('rail_gnss_model', value='white'),
         Parameter('real_time_factor', value=20.0), Parameter('max_samples', value=samples),
         Parameter('min_subscribers', value=1)]))
     probe = _add(executor, rclpy.create_node('probe', context=ros_context))
@@ -78,6 +82,37 @@ def test_the_rail_simulator_publishes_the_offline_run_and_its_acceleration(
     assert max(m.accel.linear.x for m in accel) > 0.0  # it left the station
     # Stamps stay 1/rate_hz apart however fast they went out.
     assert set(np.diff([t.stamp_ns for t in truth])) == {NS // 10}
+
+
+def test_the_receiver_rail_simulator_publishes_hacc_and_the_doppler_speed(
+        ros_context, executor):
+    """The default receiver: positions, hAcc² and Doppler speed are the stream's, to the bit."""
+    samples = 60
+    simulator = _add(executor, SimulatorNode(context=ros_context, parameter_overrides=[
+        Parameter('scenario', value='rail'), Parameter('seed', value=6),
+        Parameter('real_time_factor', value=20.0), Parameter('max_samples', value=samples),
+        Parameter('min_subscribers', value=1)]))
+    stream = make_stream('rail', 10.0, 6, rail={'gnss_model': 'receiver'})
+    expected = [stream.next_sample() for _ in range(samples)]
+    fixes = [s for s in expected if s.measured_position_m is not None]
+    probe = _add(executor, rclpy.create_node('probe', context=ros_context))
+    received = {'measurement': [], 'velocity': []}
+    for topic, kind in (('measurement', PoseWithCovarianceStamped),
+                        ('velocity', TwistWithCovarianceStamped)):
+        probe.create_subscription(kind, topic, received[topic].append, 100)
+    assert spin_until(executor, lambda: simulator.done.done(), 30.0)
+    assert spin_until(executor, lambda: (len(received['measurement']) == len(fixes)
+                                         and len(received['velocity']) == len(fixes)), 5.0)
+    measured = [messages.from_measurement_msg(m) for m in received['measurement']]
+    assert [m.position_m for m in measured] == [s.measured_position_m for s in fixes]
+    assert [m.variance_m2 for m in measured] == [s.measurement_variance_m2 for s in fixes]
+    velocity = received['velocity']
+    assert [m.twist.twist.linear.x for m in velocity] == [s.doppler_speed_mps for s in fixes]
+    assert [m.twist.covariance[0] for m in velocity] == \
+        [s.doppler_variance_m2_s2 for s in fixes]
+    assert {m.header.frame_id for m in velocity} == {'base_link'}
+    assert [messages.stamp_to_ns(m.header.stamp) for m in velocity] == \
+        [messages.stamp_to_ns(m.header.stamp) for m in received['measurement']]
 
 
 def _rail_sequence(base_ns):

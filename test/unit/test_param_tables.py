@@ -59,7 +59,8 @@ def test_the_simulator_table_is_the_stream_the_faults_and_the_options():
         field.name for field in dataclasses.fields(FaultSettings)}
     assert set(simulator_params.PARAMETERS.names) == (
         {'scenario', 'rate_hz', 'seed', 'noise_std', 'initial_position', 'true_velocity',
-         'acceleration_mps2', 'speed_noise_std', 'real_time_factor', 'rail_family'}
+         'acceleration_mps2', 'speed_noise_std', 'real_time_factor', 'rail_family',
+         'rail_gnss_model'}
         | set(simulator_params.RAIL_PARAMETERS) | faults | set(SimulatorOptions._fields)
         | {name for pair in simulator_params.RAIL_RANGE_PARAMETERS.values() for name in pair})
     assert config.faults == FaultSettings()
@@ -342,15 +343,16 @@ def test_the_simulators_configuration_offline():
 def test_the_rail_scenario_takes_its_values_or_draws_them():
     """0 and [] leave a value to the family's draw; the others reach the stream."""
     drawn = load_simulator_config(overrides=['scenario:=rail'])
-    assert drawn.stream['rail'] == {'family': 'metro'}
+    assert drawn.stream['rail'] == {'family': 'metro', 'gnss_model': 'receiver'}
     assert drawn.stream['noise_std_m'] == 1.0 and drawn.stream['initial_position_m'] == 0.0
     given = load_simulator_config(overrides=[
         'scenario:=rail', 'rail_family:=regional', 'rail_accel_mps2:=0.5',
         'rail_line_speed_mps:=30.0', 'rail_station_spacing_min_m:=2000.0',
-        'rail_station_spacing_max_m:=3000.0'])
+        'rail_station_spacing_max_m:=3000.0', 'rail_gnss_model:=white'])
     assert given.stream['rail'] == {'family': 'regional', 'accel_mps2': 0.5,
                                     'line_speed_mps': 30.0,
-                                    'station_spacing_m': (2000.0, 3000.0)}
+                                    'station_spacing_m': (2000.0, 3000.0),
+                                    'gnss_model': 'white'}
     assert 'rail' not in load_simulator_config().stream
 
 

@@ -132,3 +132,46 @@ def test_parameters_are_frozen_and_seeds_checked():
         family_parameters('tram', 0)
     with pytest.raises(ValueError, match='t_s'):
         rail_run(params, 0).state_at([-1.0])
+
+
+@pytest.mark.parametrize('family, seed', [('metro', 2), ('regional', 5)])
+def test_a_textured_run_keeps_every_invariant_and_varies_its_cruise(family, seed):
+    """Texture: small speed changes in a cruise; limits, stops and spacing still hold."""
+    plain = family_parameters(family, seed)
+    params = dataclasses.replace(plain, texture_speed_mps=0.5)
+    run = rail_run(params, seed)
+    t, state = _dense(run)
+    assert state.velocity_mps.min() >= 0.0
+    assert state.acceleration_mps2.max() <= params.accel_mps2 + 1e-12
+    assert state.acceleration_mps2.min() >= -params.brake_mps2 - 1e-12
+    jerks = np.unique(np.round(run._jerk / params.jerk_mps3, 12))
+    assert set(jerks.tolist()) <= {-1.0, 0.0, 1.0}
+    for arrive, depart in run.stops:
+        standing = run.state_at(np.linspace(arrive, depart, 20))
+        assert np.all(standing.velocity_mps == 0.0) and np.ptp(standing.position_m) == 0.0
+    stations = run.state_at(np.array([stop[0] for stop in run.stops])).position_m
+    assert np.diff(stations).min() >= params.station_spacing_m[0] * 0.95
+    assert np.diff(stations).max() <= params.station_spacing_m[1] + 1e-6
+    assert state.velocity_mps.max() > params.line_speed_mps  # a downhill stretch
+
+
+def test_a_textured_cruise_changes_its_speed_every_20_s():
+    """Without coasting or slow zones, a plain cruise is flat; a textured one is not."""
+    flat = RailParameters(line_speed_mps=20.0, station_spacing_m=(3000.0, 3000.0),
+                          dwell_s=(30.0, 30.0), slow_zone_probability=0.0,
+                          coast_drop_mps=(0.0, 0.0), duration_s=1800.0)
+    plain = rail_run(flat, 4)
+    textured = rail_run(dataclasses.replace(flat, texture_speed_mps=0.5), 4)
+    assert [stop[0] for stop in plain.stops][:3] != [stop[0] for stop in textured.stops][:3]
+    # Same sections (every draw is fixed): the texture only adds speed changes.
+    stations = [run.state_at(np.array([s[0] for s in run.stops])).position_m
+                for run in (plain, textured)]
+    count = min(len(s) for s in stations)
+    np.testing.assert_allclose(stations[0][:count], stations[1][:count], atol=1e-6)
+    cruise_s = np.sum(plain.phase_duration_s[(plain._v0 == 20.0) & (plain._jerk == 0.0)])
+    added = np.count_nonzero(textured._jerk) - np.count_nonzero(plain._jerk)
+    # A piece of ~20 s changes speed (>= 2 jerk phases each way) unless its loop does
+    # not fit (|δ| > 10·rate: under 32 % of the pieces): at least half of them do.
+    assert added >= 0.5 * (cruise_s / 20.0) * 4
+    with pytest.raises(ValueError, match='texture_speed_mps'):
+        RailParameters(texture_speed_mps=5.0)

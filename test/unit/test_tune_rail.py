@@ -50,7 +50,7 @@ def runs(tmp_path_factory):
     directory = tmp_path_factory.mktemp('rail')
     for output in ('run.csv', 'run.mcap'):
         assert kf_train_main(['simulate', '--scenario', 'rail', '--duration', str(DURATION_S),
-                              '--seed', str(SEED), '--output',
+                              '--seed', str(SEED), '-p', 'rail_gnss_model:=white', '--output',
                               str(directory / output)]) == 0
     return directory
 
