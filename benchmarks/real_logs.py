@@ -12,10 +12,13 @@ it is in this repository; docs/real-logs.md says where to get it.
 Per log this script
 
 1. reads the fixes and puts them, and the path, in a local metric frame: an
-   equirectangular projection about the log's mean latitude and longitude (x east =
-   R cos(lat0) dlon, y north = R dlat). A log spans < 15 km, so the east scale is off
-   by at most tan(lat0) * 7 km / R, ~0.13 %: < 4 cm on the <= 30 m a train runs in
-   2 s, and the same for fixes and track, so cross-track distances keep it too;
+   equirectangular projection about the log's mean latitude and longitude with
+   WGS 84's radii of curvature there (x east = N cos(lat0) dlon, y north = M dlat; a
+   sphere's mean radius would shrink east-west by 0.3 % at 51° N). A log spans
+   < 15 km, so the east scale is off by at most tan(lat0) * 7 km / R, ~0.13 %: < 4 cm
+   on the <= 30 m a train runs in 2 s, and the same for fixes and track, so
+   cross-track distances keep it too (against the logs' own Lambert 72 coordinates,
+   consecutive fixes' distances agree to 0.04 %);
 2. chains the path's LineStrings, each turned to start where the previous ended,
    into one polyline, s = 0 at its start, and projects every fix onto it
    (:func:`kf_train.io.track.project_onto_polyline`) within the arc-length range of
@@ -39,6 +42,7 @@ Per log this script
    the error, to set beside /work/shared/gnss-receiver-statistics.md.
 
     PYTHONPATH=. python benchmarks/real_logs.py --data DIR [--cache DIR] [--logs 28876,...]
+        [-p NAME:=VALUE ...] [--params-file FILE] [--rebuild] [--json FILE]
 
 DIR (or $KF_TRAIN_TPLIB_DATA) is tp-lib's ``test-data`` (or a checkout holding it);
 ``--from-git GIT_DIR`` copies the files needed out of a tp-lib clone (bare or not)
@@ -56,7 +60,7 @@ import re
 import subprocess
 import sys
 import time
-from typing import Dict, List, Tuple
+from typing import Dict, List, Sequence, Tuple
 
 from kf_train.io.track import polyline_arc_lengths_m, project_onto_polyline
 from kf_train.sim.rail_baselines import (
@@ -64,7 +68,8 @@ from kf_train.sim.rail_baselines import (
 from kf_train.sim.rail_eval import format_table, HORIZON_S, WARMUP_S
 import numpy as np
 
-EARTH_RADIUS_M = 6371008.8        # IUGG mean radius
+WGS84_A_M = 6378137.0             # WGS 84 semi-major axis
+WGS84_E2 = 6.69437999014e-3       # WGS 84 first eccentricity squared
 R_FIX_M2 = 3.0                    # the variance given with every fix (issue 24)
 WINDOW_MARGIN_M = 100.0           # how far past its assigned elements a fix may land
 CLEAN_CROSS_M = 10.0              # a clean log: every fix this close to the path
@@ -149,12 +154,16 @@ def read_fixes(path: Path) -> Tuple[np.ndarray, np.ndarray, np.ndarray, List[str
 
 def local_frame(lat0_deg: float, lon0_deg: float):
     """Return lonlat (N, 2) [deg] -> xy (N, 2) [m]: equirectangular about (lat0, lon0)."""
-    scale_x = EARTH_RADIUS_M * np.cos(np.radians(lat0_deg))
+    sin2 = np.sin(np.radians(lat0_deg)) ** 2
+    # WGS 84's radii of curvature at lat0: the prime vertical N (east), meridional M (north).
+    prime_vertical_m = WGS84_A_M / np.sqrt(1.0 - WGS84_E2 * sin2)
+    meridional_m = WGS84_A_M * (1.0 - WGS84_E2) / (1.0 - WGS84_E2 * sin2) ** 1.5
+    scale_x = prime_vertical_m * np.cos(np.radians(lat0_deg))
 
     def to_xy(lonlat: np.ndarray) -> np.ndarray:
         lonlat = np.asarray(lonlat, dtype=float)
         return np.column_stack([scale_x * np.radians(lonlat[:, 0] - lon0_deg),
-                                EARTH_RADIUS_M * np.radians(lonlat[:, 1] - lat0_deg)])
+                                meridional_m * np.radians(lonlat[:, 1] - lat0_deg)])
     return to_xy
 
 
@@ -228,12 +237,12 @@ def along_track(fixes: Path, path: Path) -> Tuple[Dict[str, np.ndarray], dict]:
     return series, facts
 
 
-def load_series(name: str, files: Tuple[Path, Path], cache: Path
+def load_series(name: str, files: Tuple[Path, Path], cache: Path, rebuild: bool = False
                 ) -> Tuple[Dict[str, np.ndarray], dict]:
     """Return a log's series from the cache, made and cached first if absent or stale."""
     csv_path, json_path = cache / 'series' / f'{name}.csv', cache / 'series' / f'{name}.json'
     newest_input = max(p.stat().st_mtime for p in files)
-    if (csv_path.exists() and json_path.exists()
+    if (not rebuild and csv_path.exists() and json_path.exists()
             and csv_path.stat().st_mtime >= newest_input):
         table = np.loadtxt(csv_path, delimiter=',', skiprows=1, ndmin=2)
         series = dict(zip(('t_s', 'x_m', 'cross_m', 'position_type'), table.T))
@@ -374,7 +383,8 @@ def write_bag(series: Dict[str, np.ndarray], facts: dict, path: Path) -> None:
             bag.write_measurement(stamp_ns, stamp_ns, 'odom', float(x_m), R_FIX_M2)
 
 
-def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path) -> dict:
+def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
+                   params_files: Sequence[str] = (), overrides: Sequence[str] = ()) -> dict:
     """
     Return the node defaults' 2-s predictions and counts over the series, as a bag.
 
@@ -386,7 +396,7 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path) -
     from kf_train.io import bagio
     from kf_train.replay import bag as bag_replay
     write_bag(series, facts, bag_path)         # cheap: always from the current series
-    config = bag_replay.load_config([], [])
+    config = bag_replay.load_config(list(params_files), list(overrides))
     horizon_ns = int(round(config.settings.horizon_s * NS))
     count = series['t_s'].size
     mean, variance = np.full(count, np.nan), np.full(count, np.nan)
@@ -412,7 +422,8 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path) -
     too_large = sum('too large' in s.message for s in statuses)
     return {'mean': mean, 'variance': variance, 'velocity': velocity, 'rejected': rejected,
             'resets': resets, 'diagnostics': len(statuses), 'too_large': too_large,
-            'horizon_s': config.settings.horizon_s}
+            'horizon_s': config.settings.horizon_s,
+            'r_m2': config.settings.measurement_variance or R_FIX_M2}   # 0: the message's
 
 
 def structure_function(t: np.ndarray, x: np.ndarray) -> Dict[float, Tuple[float, int]]:
@@ -450,13 +461,15 @@ def structure_function(t: np.ndarray, x: np.ndarray) -> Dict[float, Tuple[float,
 
 # -- the run --------------------------------------------------------------------------------
 
-def evaluate(name: str, series: Dict[str, np.ndarray], facts: dict, cache: Path) -> dict:
+def evaluate(name: str, series: Dict[str, np.ndarray], facts: dict, cache: Path,
+             args: argparse.Namespace) -> dict:
     """Return every figure of one log (artefacts, default replay, tuned CV and CA, D(τ))."""
     t, z = series['t_s'], series['x_m']
     found = artefacts(series, facts)
     print(f'{name}: {found["line"]}', flush=True)
-    default = replay_default(series, facts, cache / 'bags' / f'{name}.mcap')
-    rmse, coverage, count = score(t, z, default['mean'], default['variance'], R_FIX_M2)
+    default = replay_default(series, facts, cache / 'bags' / f'{name}.mcap',
+                             args.params_file or (), args.param or ())
+    rmse, coverage, count = score(t, z, default['mean'], default['variance'], default['r_m2'])
     missing = int(np.sum(np.isnan(default['velocity'])))
     return {'name': name, 'fixes': int(t.size), 'duration_s': float(t[-1] - t[0]),
             'artefacts': found,
@@ -533,18 +546,27 @@ def main() -> int:
                         help=f'clone {TPLIB_URL} (test-data only) into the cache first')
     parser.add_argument('--logs', help='comma-separated log ids or names (default: all)')
     parser.add_argument('--json', metavar='FILE', help='also write every figure as JSON')
+    parser.add_argument('--rebuild', action='store_true',
+                        help='derive the series again even where the cache has them')
+    parser.add_argument('-p', '--param', metavar='NAME:=VALUE', action='append',
+                        help="a node parameter for the default's replay, as kf-train "
+                             'replay -p (e.g. preset:=train); may be repeated')
+    parser.add_argument('--params-file', metavar='FILE', action='append',
+                        help="a ROS params file for the default's replay; may be repeated")
     args = parser.parse_args()
     cache = Path(args.cache).expanduser()
     logs = find_logs(data_dir(args, cache))
     if args.logs:
         wanted = {w if w.startswith('log_') else f'log_{w}' for w in args.logs.split(',')}
         logs = {k: v for k, v in logs.items() if k in wanted}
-    print(f'data: {len(logs)} logs; series cached in {cache / "series"}', flush=True)
+    print(f'data: {len(logs)} logs; series cached in {cache / "series"}; node parameters: '
+          f'{" ".join(args.param or []) or "defaults"}'
+          f'{"".join(" + " + f for f in args.params_file or [])}', flush=True)
     results = []
     for name, files in logs.items():
         start = time.perf_counter()
-        series, facts = load_series(name, files, cache)
-        results.append(evaluate(name, series, facts, cache))
+        series, facts = load_series(name, files, cache, args.rebuild)
+        results.append(evaluate(name, series, facts, cache, args))
         print(f'  ({time.perf_counter() - start:.1f} s)', flush=True)
     print_tables(results)
     if args.json:
