@@ -79,6 +79,8 @@ MAX_BRACKET_S = 1.0               # widest fix pair a later fix is interpolated 
 MATCH_TOLERANCE_S = 1e-3          # a fix this close to t + 2 s is the later fix
 GAP_S = 1.0                       # a step longer than this is a gap (nominal 0.4 s)
 TUNNEL_GAP_S = 10.0               # a gap this long: the receiver lost the sky
+STAND_SPEED_MPS = 0.3             # slower than this over ±DWELL_HALF_SPAN_S: standing
+DWELL_HALF_SPAN_S = 2.0
 REFERENCE_HALF_WINDOW_S = 10.0
 TAUS_S = (0.4, 0.8, 2.0, 4.0, 6.0)
 CV_Q_GRID = tuple(np.logspace(-3.0, 4.0, 22))     # m²/s³
@@ -242,18 +244,18 @@ def load_series(name: str, files: Tuple[Path, Path], cache: Path, rebuild: bool 
     """Return a log's series from the cache, made and cached first if absent or stale."""
     csv_path, json_path = cache / 'series' / f'{name}.csv', cache / 'series' / f'{name}.json'
     newest_input = max(p.stat().st_mtime for p in files)
-    if (not rebuild and csv_path.exists() and json_path.exists()
-            and csv_path.stat().st_mtime >= newest_input):
-        table = np.loadtxt(csv_path, delimiter=',', skiprows=1, ndmin=2)
-        series = dict(zip(('t_s', 'x_m', 'cross_m', 'position_type'), table.T))
-        return series, json.loads(json_path.read_text())
-    series, facts = along_track(*files)
-    csv_path.parent.mkdir(parents=True, exist_ok=True)
-    table = np.column_stack([series[k] for k in ('t_s', 'x_m', 'cross_m', 'position_type')])
-    np.savetxt(csv_path, table, delimiter=',', header='t_s,x_m,cross_m,position_type',
-               comments='', fmt=['%.3f', '%.4f', '%.4f', '%d'])
-    json_path.write_text(json.dumps(facts, indent=1) + '\n')
-    return series, facts
+    if (rebuild or not csv_path.exists() or not json_path.exists()
+            or csv_path.stat().st_mtime < newest_input):
+        series, facts = along_track(*files)
+        csv_path.parent.mkdir(parents=True, exist_ok=True)
+        table = np.column_stack([series[k] for k in ('t_s', 'x_m', 'cross_m', 'position_type')])
+        np.savetxt(csv_path, table, delimiter=',', header='t_s,x_m,cross_m,position_type',
+                   comments='', fmt=['%.3f', '%.4f', '%.4f', '%d'])
+        json_path.write_text(json.dumps(facts, indent=1) + '\n')
+    # Always the file's (rounded) numbers: a fresh run and a cached one score alike.
+    table = np.loadtxt(csv_path, delimiter=',', skiprows=1, ndmin=2)
+    series = dict(zip(('t_s', 'x_m', 'cross_m', 'position_type'), table.T))
+    return series, json.loads(json_path.read_text())
 
 
 def artefacts(series: Dict[str, np.ndarray], facts: dict) -> dict:
@@ -400,7 +402,7 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
     horizon_ns = int(round(config.settings.horizon_s * NS))
     count = series['t_s'].size
     mean, variance = np.full(count, np.nan), np.full(count, np.nan)
-    velocity = np.full(count, np.nan)
+    velocity, p_stand = np.full(count, np.nan), np.full(count, np.nan)
     statuses = []
     with bagio.BagInput(bag_path) as bag:
         run = bag_replay.BagRun(config, bag)
@@ -416,11 +418,15 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
                 mean[k], variance[k] = x[0], P[0, 0]
             else:   # reset by this fix, not restarted yet: the fix held where it is
                 mean[k], variance[k] = series['x_m'][k], R_FIX_M2
+            modes = estimator.mode_probabilities() if estimator.initialized else None
+            if modes is not None and 'stand' in modes[0]:
+                p_stand[k] = modes[1][modes[0].index('stand')]
         stats = run.session.estimator.stats()
         rejected = run.session.rejected
     resets = {reason: n for reason, n in stats.resets.items() if n}
     too_large = sum('too large' in s.message for s in statuses)
-    return {'mean': mean, 'variance': variance, 'velocity': velocity, 'rejected': rejected,
+    return {'mean': mean, 'variance': variance, 'velocity': velocity, 'p_stand': p_stand,
+            'rejected': rejected,
             'resets': resets, 'diagnostics': len(statuses), 'too_large': too_large,
             'horizon_s': config.settings.horizon_s,
             'r_m2': config.settings.measurement_variance or R_FIX_M2}   # 0: the message's
@@ -461,6 +467,15 @@ def structure_function(t: np.ndarray, x: np.ndarray) -> Dict[float, Tuple[float,
 
 # -- the run --------------------------------------------------------------------------------
 
+def standing(t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Return the fixes on a dwell: |x(t + 2 s) - x(t - 2 s)| / 4 s < STAND_SPEED_MPS."""
+    lag = int(round(DWELL_HALF_SPAN_S / float(np.median(np.diff(t)))))
+    speed = np.full(t.size, np.inf)
+    if t.size > 2 * lag:
+        speed[lag:-lag] = np.abs(x[2 * lag:] - x[:-2 * lag]) / (t[2 * lag:] - t[:-2 * lag])
+    return speed < STAND_SPEED_MPS
+
+
 def evaluate(name: str, series: Dict[str, np.ndarray], facts: dict, cache: Path,
              args: argparse.Namespace) -> dict:
     """Return every figure of one log (artefacts, default replay, tuned CV and CA, D(τ))."""
@@ -471,13 +486,19 @@ def evaluate(name: str, series: Dict[str, np.ndarray], facts: dict, cache: Path,
                              args.params_file or (), args.param or ())
     rmse, coverage, count = score(t, z, default['mean'], default['variance'], default['r_m2'])
     missing = int(np.sum(np.isnan(default['velocity'])))
+    dwell = standing(t, z) & np.isfinite(default['p_stand'])
+    p_stand = default['p_stand'][dwell]
     return {'name': name, 'fixes': int(t.size), 'duration_s': float(t[-1] - t[0]),
             'artefacts': found,
             'default': {'rmse_m': rmse, 'coverage': coverage, 'count': count,
                         'rejected': default['rejected'], 'resets': default['resets'],
                         'min_velocity_mps': float(np.nanmin(default['velocity'])),
                         'diagnostics': default['diagnostics'],
-                        'too_large': default['too_large'], 'unpublished': missing},
+                        'too_large': default['too_large'], 'unpublished': missing,
+                        'dwell_fixes': int(dwell.sum()),
+                        'p_stand_median': float(np.median(p_stand)) if p_stand.size else None,
+                        'p_stand_below_half': float(np.mean(p_stand < 0.5))
+                        if p_stand.size else None},
             'CV': tuned(t, z, 2, CV_Q_GRID), 'CA': tuned(t, z, 3, CA_Q_GRID),
             'structure': structure_function(t, z)}
 
@@ -500,15 +521,19 @@ def print_tables(results: List[dict]) -> None:
     for r in results:
         d, cv, ca, a = r['default'], r['CV'], r['CA'], r['artefacts']
         resets = ', '.join(f'{k} {v}' for k, v in d['resets'].items()) or '0'
+        stand = '-' if d['p_stand_median'] is None else (
+            f"{d['dwell_fixes']}: {d['p_stand_median']:.2f} / "
+            f"{100 * d['p_stand_below_half']:.0f} %")
         rows.append((r['name'], f"{a['cross_median_m']:.1f}/{a['cross_p95_m']:.0f}",
-                     d['count'], d['rejected'], resets, f"{d['min_velocity_mps']:.2f}",
+                     d['count'], d['rejected'], resets, f"{d['min_velocity_mps']:.2f}", stand,
                      f"{d['too_large']}/{d['diagnostics']}",
                      f"{100 * cv['coverage']:.0f} % (q {cv['q']:.2g}, R {cv['r_m2']:.2g})",
                      f"{100 * ca['coverage']:.0f} % (q {ca['q']:.2g}, R {ca['r_m2']:.2g})"
                      + (' edge' if ca['on_grid_edge'] else '')))
     print("\nThe default in detail; the tuned filters' 2σ coverage and tuning\n")
     print(format_table(('log', '|cross| median/p95 [m]', 'scored', 'rejected',
-                        'resets (reason)', 'min v [m/s]', "diagnostics 'too large'",
+                        'resets (reason)', 'min v [m/s]',
+                        'dwell fixes: P(stand) median / < 0.5', "diagnostics 'too large'",
                         'CV cov. (q, R)', 'CA cov. (q, R)'), rows))
     rows = [(r['name'],) + tuple(f'{r["structure"][tau][0]:.3f}' for tau in TAUS_S)
             for r in results]
