@@ -1,0 +1,94 @@
+"""
+Points onto a track: along-track position s and signed cross-track distance d.
+
+A track is a polyline of vertices in a metric plane (x east, y north, metres, any
+local frame). :func:`project_onto_polyline` drops each point perpendicularly onto the
+nearest piece of the polyline: s is the arc length from the first vertex to the foot
+point, d the distance from the foot point to the point, positive to the left of the
+direction of travel along the vertices. A window [s_min, s_max] per point restricts
+the search to that stretch of arc length: a track that runs past the same place
+twice (a reversal, a loop) is then resolved by where the point is expected to be,
+not by the nearest copy. Pure numpy; no map matching (which track a train took is the
+caller's business).
+"""
+
+from typing import Tuple, Union
+
+import numpy as np
+
+ArrayOrFloat = Union[np.ndarray, float, None]
+
+_PAIRS_PER_CHUNK = 1 << 19
+"""Point-segment pairs per vectorised chunk: bounds the work arrays to ~50 MB."""
+
+
+def polyline_arc_lengths_m(vertices_m: np.ndarray) -> np.ndarray:
+    """Return the arc length from the first vertex to each vertex (M,) [m]."""
+    vertices = np.asarray(vertices_m, dtype=float)
+    steps = np.hypot(*np.diff(vertices, axis=0).T)
+    return np.concatenate(([0.0], np.cumsum(steps)))
+
+
+def _window(bound: ArrayOrFloat, count: int, fill: float) -> np.ndarray:
+    """Return a per-point bound (count,) from None, a scalar or an array."""
+    if bound is None:
+        return np.full(count, fill)
+    return np.broadcast_to(np.asarray(bound, dtype=float), (count,))
+
+
+def project_onto_polyline(points_m: np.ndarray, vertices_m: np.ndarray,
+                          s_min_m: ArrayOrFloat = None, s_max_m: ArrayOrFloat = None
+                          ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return (s_m, cross_m) (N,) of points (N, 2) on the polyline vertices (M, 2).
+
+    Each point goes to its nearest foot point on the polyline within arc lengths
+    [s_min_m, s_max_m] (scalars or (N,), default the whole line); the foot point may
+    be an end of that stretch. cross_m is the distance to the foot point, signed
+    positive left of the polyline's direction (the side of the segment it falls on).
+    """
+    points = np.asarray(points_m, dtype=float).reshape(-1, 2)
+    vertices = np.asarray(vertices_m, dtype=float)
+    if vertices.ndim != 2 or vertices.shape[1] != 2:
+        raise ValueError(f'vertices must be (M, 2), got {vertices.shape}')
+    keep = np.concatenate(([True], np.any(np.diff(vertices, axis=0) != 0.0, axis=1)))
+    vertices = vertices[keep]                    # repeated vertices make empty segments
+    if vertices.shape[0] < 2:
+        raise ValueError('the polyline needs two distinct vertices')
+    arc = polyline_arc_lengths_m(vertices)
+    start, step = vertices[:-1], np.diff(vertices, axis=0)
+    length = np.diff(arc)
+    count = points.shape[0]
+    lo = _window(s_min_m, count, 0.0)
+    hi = _window(s_max_m, count, arc[-1])
+    s_out, cross_out = np.empty(count), np.empty(count)
+    chunk = max(1, _PAIRS_PER_CHUNK // length.size)
+    for first in range(0, count, chunk):
+        part = slice(first, first + chunk)
+        s_out[part], cross_out[part] = _project_chunk(
+            points[part], start, step, length, arc, lo[part], hi[part])
+    return s_out, cross_out
+
+
+def _project_chunk(points: np.ndarray, start: np.ndarray, step: np.ndarray,
+                   length: np.ndarray, arc: np.ndarray, lo: np.ndarray, hi: np.ndarray
+                   ) -> Tuple[np.ndarray, np.ndarray]:
+    """Return (s, cross) of a chunk of points against every segment (the arrays (n, m))."""
+    rel = points[:, None, :] - start[None, :, :]                  # point - segment start
+    along = (rel * step).sum(axis=2) / length                     # foot's distance along
+    # The window, in each segment's own coordinate (an empty window: the segment is out).
+    seg_lo = np.maximum(lo[:, None] - arc[None, :-1], 0.0)
+    seg_hi = np.minimum(hi[:, None] - arc[None, :-1], length[None, :])
+    inside = seg_lo <= seg_hi
+    along = np.clip(along, seg_lo, np.maximum(seg_lo, seg_hi))
+    unit = step / length[:, None]
+    foot = start[None, :, :] + along[..., None] * unit[None, :, :]
+    distance = np.hypot(*(points[:, None, :] - foot).transpose(2, 0, 1))
+    distance = np.where(inside, distance, np.inf)
+    best = np.argmin(distance, axis=1)
+    rows = np.arange(points.shape[0])
+    if not np.all(np.isfinite(distance[rows, best])):
+        raise ValueError('a point has an empty window: s_min_m > s_max_m or off the line')
+    cross = unit[best, 0] * rel[rows, best, 1] - unit[best, 1] * rel[rows, best, 0]
+    side = np.where(cross >= 0.0, 1.0, -1.0)                        # left of travel: +
+    return arc[best] + along[rows, best], side * distance[rows, best]
