@@ -264,11 +264,12 @@ class ReferenceRailModel(ReferenceIMM):
         """Return Π(dt): the fixed rates plus brake -> stand, scaled by P(v <= stop speed)."""
         params = self.parameters
         rates = self._rates.rates.copy()
-        v = state.means[BRAKE, 1]
-        std = math.sqrt(max(state.covariances[BRAKE, 1, 1], 0.0))
-        slow = (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
-            _normal_cdf((params.stop_speed_mps - v) / std)
-        rates[BRAKE, STAND] = params.stop_rate_hz * slow
+        for regime in (ACCELERATE, CRUISE, BRAKE):  # added since: any slow train may stop
+            v = state.means[regime, 1]
+            std = math.sqrt(max(state.covariances[regime, 1, 1], 0.0))
+            slow = (1.0 if v <= params.stop_speed_mps else 0.0) if std == 0.0 else \
+                _normal_cdf((params.stop_speed_mps - v) / std)
+            rates[regime, STAND] = params.stop_rate_hz * slow
         return self._rates.matrix(dt_s, rates)
 
     def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:

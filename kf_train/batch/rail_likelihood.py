@@ -43,9 +43,9 @@ from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
     first_jump_row, hold_velocity, LOG_2PI, RailModel, RailModelParameters, RateTransition,
     stop_probability)
+from kf_train.filters.rail_model import STAND, STOPPING
 import numpy as np
 
-STAND, ACCELERATE, CRUISE, BRAKE = range(4)
 RAIL_NOISE_FIELDS = ('acceleration_noise', 'command_noise', 'capability_noise')
 """The RailModelParameters a :class:`RailNoise` varies (they only change Q)."""
 
@@ -140,23 +140,25 @@ def _entry(model: RailModel):
     return rows, rows * rows, np.array(rule.noises)
 
 
-def _transition(base: np.ndarray, params: RailModelParameters, brake_rates: np.ndarray,
+def _transition(base: np.ndarray, params: RailModelParameters, stop_rates: np.ndarray,
                 dt_s: float, means: np.ndarray, covs: np.ndarray) -> np.ndarray:
     """
-    Return Π(dt) per setting (K, 4, 4): the fixed rates, brake → stand scaled by P(slow).
+    Return Π(dt) per setting (K, 4, 4): the fixed rates, → stand scaled by P(slow).
 
-    As RailModel.transition: the brake row's stand rate is stop_rate ·
-    P(v <= stop_speed) under the brake regime's estimate; the row is
-    :func:`~kf_train.filters.first_jump_row` (Π_ii = e^(−r_i dt),
-    Π_ij = (1 − e^(−r_i dt)) r_ij / r_i), per setting.
+    As RailModel.transition: each row of STOPPING (a regime a slow train may stop
+    from) has its stand rate stop_rate · P(v <= stop_speed) under that regime's
+    estimate; the row is :func:`~kf_train.filters.first_jump_row`
+    (Π_ii = e^(−r_i dt), Π_ij = (1 − e^(−r_i dt)) r_ij / r_i), per setting.
     """
     count = means.shape[0]
-    slow = stop_probability(means[:, BRAKE, 1], np.sqrt(np.maximum(covs[:, BRAKE, 1, 1], 0.0)),
-                            params.stop_speed_mps)
-    rates = np.repeat(brake_rates[None], count, axis=0)       # (K, 4), brake's own 0
-    rates[:, STAND] = params.stop_rate_hz * slow
     matrix = np.repeat(base[None], count, axis=0)
-    matrix[:, BRAKE] = first_jump_row(rates, BRAKE, dt_s)     # Π(dt)'s one formula
+    for regime in STOPPING:
+        slow = stop_probability(means[:, regime, 1],
+                                np.sqrt(np.maximum(covs[:, regime, 1, 1], 0.0)),
+                                params.stop_speed_mps)
+        rates = np.repeat(stop_rates[regime][None], count, axis=0)   # (K, 4), own 0
+        rates[:, STAND] = params.stop_rate_hz * slow
+        matrix[:, regime] = first_jump_row(rates, regime, dt_s)       # Π(dt)'s one formula
     return matrix
 
 
@@ -246,7 +248,7 @@ def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innov
     covs[:, :, 0, 0] = R[:, None]
     probabilities = np.full((count, 4), 0.25)
     entry, rates = _entry(RailModel(base)), RateTransition(base.rates())
-    brake_rates = base.rates()[BRAKE]
+    stop_rates = base.rates()
     identity = np.tile(np.eye(6), (count, 4, 1, 1))
     units, bases = _UnitModels(base), {}
     weights = (q_a[:, None, None, None], q_l[:, None, None, None], q_c[:, None, None, None])
@@ -256,7 +258,7 @@ def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innov
         unit = units(dt)
         if dt not in bases:
             bases[dt] = rates.matrix(dt)
-        matrix = _transition(bases[dt], base, brake_rates, dt, means, covs)
+        matrix = _transition(bases[dt], base, stop_rates, dt, means, covs)
         cbar, mixed_x, mixed_P = _mix(matrix, probabilities, means, covs, entry)
         cbar = cbar / cbar.sum(axis=1, keepdims=True)                # as IMM.predict
         Q = weights[0] * unit.acceleration + weights[1] * unit.command + \

@@ -254,9 +254,10 @@ class Fusion:
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'update failed: {error}', fix=(t_b, z, R))
         threshold = self.config.gate_threshold
-        if result.nis > threshold:
+        nis = result.nis if result.gate_nis is None else result.gate_nis
+        if nis > threshold:
             self._reject_update('outlier', (
-                f'NIS {result.nis:.6g} exceeds the gate {threshold:.6g} '
+                f'NIS {nis:.6g} exceeds the gate {threshold:.6g} '
                 f'(gate_probability {self.config.settings.gate_probability}); innovation '
                 f'{np.array2string(result.innovation, precision=6)}'), result, (t_b, z, R))
         try:

@@ -411,11 +411,17 @@ class IMM:
                                   stack.identity, stack.selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
         y, S, nis, gain = imm_stack.mixture_innovation(state.probabilities, state.means, result)
+        gate_nis = None
+        if noise.scale < 1.0:
+            # Weighted with the learned R, gated with the R given: a fix is an outlier
+            # only if even the receiver's own accuracy cannot explain it.
+            gate_nis = y * y / (S + (1.0 - noise.scale) * float(reported[0]))
         if self.adaptation is not None:
             noise = self.adaptation.learn(noise, y, S, float(reported[0]))
         new_state = IMMState(_read_only(result.means), _read_only(result.covariances),
                              _read_only(posterior), noise)
-        return new_state, UpdateResult(np.array([y]), np.array([[S]]), nis, gain[:, None])
+        return new_state, UpdateResult(np.array([y]), np.array([[S]]), nis, gain[:, None],
+                                       gate_nis)
 
     @staticmethod
     def _mixture_innovation(prior: IMMState, results) -> UpdateResult:

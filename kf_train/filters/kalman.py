@@ -43,6 +43,9 @@ class UpdateResult(NamedTuple):
     """Normalised innovation squared yᵀ S⁻¹ y: χ²(m) when the model is right."""
     gain: np.ndarray
     """Kalman gain K = P⁻ Hᵀ S⁻¹, shape (n, m)."""
+    gate_nis: Optional[float] = None
+    """The NIS an outlier gate should test, when it is not ``nis``: a filter that learned
+    a measurement noise below the one given gates with the given one (None: ``nis``)."""
 
 
 def _control(B, u, dim_x: int) -> Optional[np.ndarray]:

@@ -21,9 +21,16 @@ What is known about trains, and how the model uses it:
   braking phase then teaches the filter A or B through that correlation, and the
   next departure or brake is recognised sooner.
 * **Stopped means stopped.** The stand regime holds p and sets v = a = ℓ = 0 with no
-  uncertainty (F = diag(1, 0, 0, 0, 1, 1)). Only a braking train can stop, and only when
-  it is slow: its rate of switching to stand is scaled by P(v <= stop_speed_mps)
-  under its own estimate, so a noisy measurement cannot 'stop' a train at speed.
+  uncertainty (F = diag(1, 0, 0, 0, 1, 1)). Only a slow train can stop: a moving
+  regime's rate of switching to stand (stop_rate_hz) is scaled by
+  P(v <= stop_speed_mps) under its own estimate, so a noisy measurement cannot 'stop' a
+  train at speed, and a regime that holds no speed (an 'accelerating' or 'cruising'
+  train that does not move, at a dwell) drains into stand (:data:`STOPPING`; before,
+  only brake could, and at real dwells P(stand) stayed near 0.7).
+* **The receiver's noise is learned.** R in use is a scale times the variance given,
+  the scale learned from the innovations (:mod:`~kf_train.filters.noise_adaptation`,
+  ``noise_window``); a fix is gated with the variance given, so only a fix the
+  receiver's own accuracy cannot explain is an outlier.
 * **Trains do not reverse.** The prediction ahead (:meth:`RailModel.predict_ahead`)
   follows each regime's mean path and holds the train where its velocity reaches 0,
   so no regime predicts going backwards, and the mixture's predicted position is
@@ -60,6 +67,9 @@ STATE_NAMES = ('position', 'velocity', 'acceleration', 'commanded_acceleration',
                'acceleration_capability', 'braking_capability')
 DIM_X = len(STATE_NAMES)
 STAND, ACCELERATE, CRUISE, BRAKE = range(4)
+STOPPING = (ACCELERATE, CRUISE, BRAKE)
+"""The regimes a slow train may stop from: braking to a halt, or 'cruising' at a crawl
+(a train that holds no speed is standing, whatever the regime it came from)."""
 _H = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
 _CACHE_SIZE = 64
 
@@ -90,6 +100,7 @@ class RailModelParameters:
     """Prior standard deviation of the commanded acceleration in 'cruise' (mean 0)."""
     capability_noise: float = 1e-6
     """Random walk of A and B (load, adhesion) [m²/s⁵]."""
+
     departure_rate_hz: float = 1.0 / 30.0
     """stand -> accelerate: one over a typical dwell [1/s]."""
     accelerate_to_cruise_rate_hz: float = 1.0 / 15.0
@@ -105,7 +116,7 @@ class RailModelParameters:
     brake_to_accelerate_rate_hz: float = 1.0 / 100.0
     """brake -> accelerate: rare [1/s]."""
     stop_rate_hz: float = 1.0
-    """brake -> stand, for a train slower than stop_speed_mps [1/s]."""
+    """accelerate, cruise, brake -> stand, for a train slower than stop_speed_mps [1/s]."""
     stop_speed_mps: float = 0.3
     """Speed below which a braking train may be standing [m/s]."""
     stand_noise: float = 0.0
@@ -248,7 +259,7 @@ class RailModel(IMM):
 
     It specialises the :class:`~kf_train.filters.imm.IMM` through its public hooks
     only, each of them a method here and the one code that runs: :meth:`transition`
-    (Π(dt) with the state's brake -> stand rate), :meth:`mix_entering` (the mixing,
+    (Π(dt) with the state's -> stand rates), :meth:`mix_entering` (the mixing,
     components entering a regime by :meth:`entry`'s rule) and :meth:`matrices` (the
     regimes' stacked F, Q); and it has its own :meth:`predict_ahead` (no reversal).
     """
@@ -267,10 +278,10 @@ class RailModel(IMM):
                          adaptation=parameters.adaptation())
         self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
 
-    def _slow(self, state: IMMState) -> float:
-        """Return P(v <= stop_speed_mps) under the brake regime's estimate."""
-        return stop_probability(float(state.means[BRAKE, 1]),
-                                math.sqrt(max(float(state.covariances[BRAKE, 1, 1]), 0.0)),
+    def _slow(self, state: IMMState, regime: int) -> float:
+        """Return P(v <= stop_speed_mps) under a regime's estimate."""
+        return stop_probability(float(state.means[regime, 1]),
+                                math.sqrt(max(float(state.covariances[regime, 1, 1]), 0.0)),
                                 self.parameters.stop_speed_mps)
 
     @property
@@ -279,7 +290,7 @@ class RailModel(IMM):
         return self._entry
 
     def _for_dt(self, dt_s: float) -> tuple:
-        """Return (F, Q, Fᵀ, Π without brake -> stand) for dt_s, computed once per dt_s."""
+        """Return (F, Q, Fᵀ, Π without the -> stand rates) for dt_s, computed once per dt_s."""
         kept = self._per_dt.get(dt_s)
         if kept is None:
             # Stacked straight from the regimes' own F and Q, unchecked: they are built
@@ -303,16 +314,17 @@ class RailModel(IMM):
 
     def transition(self, dt_s: float, state: IMMState) -> np.ndarray:
         """
-        Return Π(dt): the fixed rates plus brake -> stand, scaled by P(v <= stop speed).
+        Return Π(dt): the fixed rates plus -> stand, scaled by P(v <= stop speed).
 
-        Only the brake row depends on the state: the others are kept per dt, and the
-        brake row is :func:`~kf_train.filters.imm.first_jump_row` of the brake rates
-        with stop_rate_hz · P(v <= stop_speed_mps) to stand (the IMM's hook).
+        Only the rows of :data:`STOPPING` depend on the state: the others are kept per
+        dt, and each of those is :func:`~kf_train.filters.imm.first_jump_row` of its
+        rates with stop_rate_hz · P(v <= stop_speed_mps) to stand (the IMM's hook).
         """
-        rates = self._rates.rates[BRAKE].tolist()
-        rates[STAND] = self.parameters.stop_rate_hz * self._slow(state)
         matrix = self._for_dt(dt_s)[3].copy()
-        matrix[BRAKE] = first_jump_row(rates, BRAKE, dt_s)
+        for regime in STOPPING:
+            rates = self._rates.rates[regime].tolist()
+            rates[STAND] = self.parameters.stop_rate_hz * self._slow(state, regime)
+            matrix[regime] = first_jump_row(rates, regime, dt_s)
         return matrix
 
     def mix_entering(self, weights: np.ndarray, means: np.ndarray, covs: np.ndarray):
