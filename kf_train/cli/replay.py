@@ -138,6 +138,12 @@ def _parser() -> argparse.ArgumentParser:
                           'bag, else the only one of the expected type)')
     bag.add_argument('--control-topic', metavar='NAME', default=None,
                      help="the control topic, for presets with one (default: 'control')")
+    bag.add_argument('--velocity-topic', metavar='NAME', default=None,
+                     help='the measured speeds the rail preset fuses, of type '
+                          'TwistWithCovarianceStamped (-p velocity_type:=twist: TwistStamped '
+                          "with -p measurement_velocity_variance:=V) (default: 'velocity' "
+                          'when the bag has it with that type, as the node subscribes it; '
+                          '-p velocity_type:=none fuses none)')
     return parser
 
 
@@ -157,7 +163,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error('one of --preset NAME or --config FILE is required')
     if args.input is None or args.output is None:
         parser.error('INPUT and --output OUTPUT are required')
-    for option in ('params_file', 'parameter', 'topic', 'control_topic'):
+    for option in ('params_file', 'parameter', 'topic', 'control_topic', 'velocity_topic'):
         if getattr(args, option):
             parser.error(f"--{option.replace('_', '-')} applies to a bag input only")
     check_engine_options(parser, args)
@@ -219,14 +225,16 @@ def _run_bag(args: argparse.Namespace) -> int:
         config = bag.load_config(args.params_file or [], args.parameter or [])
         with collector_frozen():
             summary = bag.replay_bag(args.input, args.output, config, args.topic,
-                                     args.control_topic)
+                                     args.control_topic, args.velocity_topic)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return 1
     rate = summary.measurements / summary.seconds if summary.seconds > 0 else math.inf
     print(f'kf-train replay: {summary.measurements} measurements on '
           f'{summary.measurement_topic}, {summary.controls} controls, '
-          f'{summary.rejected} rejected -> {summary.estimates} estimates in '
+          + (f'{summary.velocities} speeds on {summary.velocity_topic}, '
+             if summary.velocity_topic else '')
+          + f'{summary.rejected} rejected -> {summary.estimates} estimates in '
           f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
           file=sys.stderr)
     return 0

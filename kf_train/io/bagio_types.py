@@ -6,6 +6,7 @@ POSE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 ODOMETRY = 'nav_msgs/msg/Odometry'
 ACCEL = 'geometry_msgs/msg/AccelStamped'
 TWIST = 'geometry_msgs/msg/TwistStamped'
+TWIST_COVARIANCE = 'geometry_msgs/msg/TwistWithCovarianceStamped'
 VECTOR3 = 'geometry_msgs/msg/Vector3Stamped'
 DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
 
@@ -13,6 +14,8 @@ MEASUREMENT_TYPES = {('position',): POSE, ('position', 'velocity'): ODOMETRY}
 """A preset's measurement names -> the message type of its ``measurement`` topic."""
 CONTROL_TYPES = {'acceleration': ACCEL, 'velocity': TWIST}
 """A preset's control name -> the message type of its ``control`` topic."""
+VELOCITY_TYPES = {'twist_with_covariance': TWIST_COVARIANCE, 'twist': TWIST}
+"""The estimator's ``velocity_type`` -> the message type of its ``velocity`` topic."""
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 """rosbags' definitions of the ROS 2 Jazzy standard messages."""
