@@ -16,7 +16,10 @@ columns are ignored):
   the first row may be at t0, later rows must increase (times are taken to whole
   nanoseconds, as ROS stamps are).
 * the preset's measurements, ``z_<name>``: ``z_position``, ``z_velocity``,
-  ``z_bearing`` [rad], ``z_range`` [m].
+  ``z_bearing`` [rad], ``z_range`` [m]. The rail preset also reads measured speeds
+  when the header has ``z_velocity`` [m/s] (a GNSS Doppler), with its variance
+  ``var_z_velocity`` [m²/s²]: each row's speed is fused after its position; either
+  may be empty (:class:`~kf_train.batch.RailSeriesFilter`).
 * ``u`` when the preset has a control input: the control applied over the interval
   that ends at that row.
 * optionally ``id``: rows with different ids are independent objects (a fleet of
@@ -71,8 +74,8 @@ from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.estimator import RAIL_FILTER_KINDS
 from kf_train.filters import Filter, FILTER_KINDS, make_filter
 from kf_train.io import is_bag
-from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset
-from kf_train.replay import collector_frozen, load_any_preset, run_engine
+from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset, SPEED_COLUMN
+from kf_train.replay import collector_frozen, input_columns, load_any_preset, run_engine
 import numpy as np
 
 EXIT_OK = 0
@@ -92,6 +95,8 @@ def _parser() -> argparse.ArgumentParser:
         epilog='Table input: a header, then rows with t [s], the measurements z_position, '
                'z_velocity, z_bearing [rad], z_range [m] the preset uses, and u when it '
                'has a control input (the control over the interval ending at the row); '
+               'the rail preset also fuses a measured speed z_velocity [m/s] with its '
+               'variance var_z_velocity [m²/s²] when the table has them; '
                'optionally id: each id is an independent object with its own series. '
                'Output: id (if given), t, each state by name, var_<state>; '
                'predicted_<state> and var_predicted_<state> at t + horizon; '
@@ -178,6 +183,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error(str(error))
     try:
         preset = load_any_preset(args.preset, args.config)
+        if isinstance(preset, RailPreset) and SPEED_COLUMN in input_columns(args.input):
+            preset = preset.with_speed()   # the rail IMM fuses the rows' speeds too
         filt = _make_filter(preset, args, options)
         summary = run_engine(
             args.engine, preset, args.input, args.output, filt, horizon_s=args.horizon,
