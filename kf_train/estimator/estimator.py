@@ -112,6 +112,15 @@ Time handling:
   or a stream restart also forgets the controls (their stamps belong to the old
   time line).
 
+Measured speeds (the rail preset: :meth:`StreamEstimator.process_velocity`, a GNSS
+Doppler along the track) are a second input with the same contract and gate (on the
+speed's own NIS), fused by the IMM's velocity update (H = e_1; the learned scale on R
+is the position's and stays out of it) and kept in the same history, so out-of-sequence
+speeds and positions rewind and replay exactly. At one stamp the position goes first
+(dt = 0 to the speed), whichever arrived first. A speed never initialises the filter,
+and its rejections (:data:`~kf_train.estimator.contract.VELOCITY_REJECTION_REASONS`)
+are counted apart and never count toward the lock-out or a stream restart.
+
 Every rejection and reset is counted by reason (:meth:`StreamEstimator.stats`).
 
 The parts live beside this module: the settings (:mod:`~kf_train.estimator.settings`),

@@ -27,7 +27,7 @@ Output (``--output``):
   (``position``, ``velocity``), ``var_<state>``, ``predicted_<state>`` and
   ``var_predicted_<state>`` (at t + horizon_s), ``nis`` (of the measurement that step
   fused; empty when it fused none: the filter's initialisation, a correction after a
-  late control). Numbers as Python's shortest round-trip ``repr``.
+  late control, a speed). Numbers as Python's shortest round-trip ``repr``.
 * a directory or ``X.mcap``: a rosbag2 MCAP bag (:class:`kf_train.io.bagio_output.
   OutputBag`) with ``estimate``, ``prediction``, ``innovation``, ``/diagnostics``
   (every ``diagnostics_period_s`` of record time, stamped with it) and, for a preset
