@@ -239,8 +239,8 @@ def _run_bag(args: argparse.Namespace) -> int:
     rate = summary.measurements / summary.seconds if summary.seconds > 0 else math.inf
     print(f'kf-train replay: {summary.measurements} measurements on '
           f'{summary.measurement_topic}, {summary.controls} controls, '
-          + (f'{summary.velocities} speeds on {summary.velocity_topic}, '
-             if summary.velocity_topic else '')
+          + (f'{summary.velocities} speeds on {summary.velocity_topic} '
+             f'({summary.velocities_rejected} rejected), ' if summary.velocity_topic else '')
           + f'{summary.rejected} rejected -> {summary.estimates} estimates in '
           f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
           file=sys.stderr)

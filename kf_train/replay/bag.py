@@ -65,6 +65,7 @@ class BagReplaySummary(NamedTuple):
     velocities: int = 0
     """Speeds read (0 without a velocity topic)."""
     velocity_topic: Optional[str] = None
+    velocities_rejected: int = 0
 
 
 def load_config(params_files: List[str], overrides: List[str]):
@@ -248,4 +249,4 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
             counts['estimates'], session.rejected if session else 0,
             (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
             bag.measurement_topic, session.velocities_received if session else 0,
-            bag.velocity_topic)
+            bag.velocity_topic, session.velocities_rejected if session else 0)
