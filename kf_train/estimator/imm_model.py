@@ -51,7 +51,8 @@ class IMMModel:
         Return the model of the same IMM measuring state ``index`` directly (H = e_index).
 
         It shares this model's states, so a history may hold steps of both (a position,
-        then a speed) and a rewind and replay repeats each step with its own model.
+        then a speed) and a rewind and replay repeats each step with its own model. Its
+        updates need their R (a sensor of its own: no default noise).
         """
         H = np.zeros((1, self.dim_x))
         H[0, index] = 1.0
@@ -62,7 +63,7 @@ class IMMModel:
         """Return the IMM's update of ``state`` by z: its own measurement or ``measured``."""
         if self.measured is None:
             return self.imm.update(state, z, R)
-        return self.imm.update_component(state, z, self.R if R is None else R, self.measured)
+        return self.imm.update_component(state, z, R, self.measured)   # R required
 
     def state_of(self, x: np.ndarray, P: np.ndarray) -> IMMState:
         """Return the IMM state behind x (all modes at (x, P) if x is not one of ours)."""

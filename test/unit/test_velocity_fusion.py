@@ -231,3 +231,16 @@ def test_presets_without_a_speed_input_refuse_it_and_the_seed_switch_is_untouche
     with pytest.raises(ValueError, match='does not fuse a separate speed'):
         estimator.process_velocity(2 * NS, 1.0, 0.01)
     assert StreamEstimator(RAIL).fuses_velocity
+
+
+def test_a_component_update_checks_its_index_and_needs_its_noise():
+    imm, state = _moving_state()
+    for index in (-1, 6, 1.0, True):
+        with pytest.raises(ValueError, match='index'):
+            imm.update_component(state, 1.0, [[1.0]], index)
+    with pytest.raises(ValueError, match='R must be given'):
+        imm.update_component(state, 1.0, None, 1)
+    # The position through update_component is the modes' own update without the scale.
+    new, _ = imm.update_component(state, 1.0, [[1.0]], 0)
+    np.testing.assert_allclose(new.means, imm.update(state, 1.0, [[1.0]])[0].means,
+                               rtol=1e-12, atol=1e-12)
