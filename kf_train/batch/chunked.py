@@ -267,7 +267,10 @@ def _as_estimates(result) -> Estimates:
 def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
                     t: np.ndarray, missing=None) -> Estimates:
     """Predict and update ``filt`` row by row from its current state (no reset)."""
-    z, missing = without_gaps(z, missing)
+    if getattr(filt, 'partial_rows', False):
+        missing = None      # it takes every row, its empty cells NaN (RailSeriesFilter)
+    else:
+        z, missing = without_gaps(z, missing)
     out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon,
                                                                  missing)
     return Estimates(t, out_x, out_P, prior_x, prior_P, filt.preset.dynamics.F_batch(dt),

@@ -14,17 +14,26 @@ estimates :class:`~kf_train.estimator.StreamEstimator` (preset rail, no gate)
 gives for the same stamps, bit for bit. (The seeds' "initial estimate at t0" would
 pin a train at position 0 ± 1 m; a train's first fix is anywhere on the line.)
 
+With measured speeds (``z_velocity`` and its variance ``var_z_velocity`` in the input:
+the preset :meth:`~kf_train.presets.RailPreset.with_speed`), a row's speed corrects the
+IMM after its position (a prediction over dt = 0, then
+:meth:`~kf_train.filters.RailModel.update_velocity`: R as given, the learned scale
+untouched), as the streaming estimator's ``process_velocity`` does for the same
+stamp; either cell may be empty (a fix without a speed, a speed without a fix), and a
+speed before the first position is skipped (no state to correct yet).
+
 No χ² gate offline (as for every preset in ``replay``), and no RTS smoother: an IMM
 is a mixture, not one linear-Gaussian model. Rows before an object's first measurement (empty
 cells, ``updated`` 0) carry the preset's prior unchanged, position 0 included: there
 is no estimate yet, and those rows say nothing about where the train is.
 """
 
+import math
 from typing import Dict, Optional, Tuple
 
 from kf_train.filters import (
     as_covariance, as_duration, as_vector, IMMFilter, UpdateResult)
-from kf_train.presets import RailPreset
+from kf_train.presets import RailPreset, SPEED_VARIANCE_COLUMN
 import numpy as np
 
 
@@ -41,6 +50,8 @@ class RailSeriesFilter:
     def __init__(self, preset: RailPreset):
         """Build the preset's IMM; the filter waits for its first measurement."""
         self.preset = preset
+        self.partial_rows = preset.speed
+        """Rows may have empty (NaN) cells, each skipped here (the speed preset's)."""
         self.imm = preset.model()
         self.R = preset.R
         self._prior: Tuple[np.ndarray, np.ndarray] = (preset.initial_state,
@@ -90,8 +101,32 @@ class RailSeriesFilter:
             self._running.predict(dt_s)
 
     def update(self, z, R=None) -> Optional[UpdateResult]:
-        """Correct with position z; the first one starts the filter (returns None then)."""
-        z = as_vector('z', z, 1)
+        """
+        Correct with position z; the first one starts the filter (returns None then).
+
+        With speeds z is (position, speed, its variance), NaN where a cell was empty:
+        the position first, then the speed (the speed's result is returned).
+        """
+        if not self.preset.speed:
+            return self._update_position(as_vector('z', z, 1), R)
+        position, speed, variance = np.asarray(z, dtype=float).reshape(3).tolist()
+        result = None
+        if not math.isnan(position):
+            result = self._update_position(np.array([position]), R)
+        if not math.isnan(speed) and self._running is not None:
+            if not variance > 0.0 or math.isinf(variance):
+                raise ValueError(f'a speed needs a finite variance > 0 (column '
+                                 f'{SPEED_VARIANCE_COLUMN}), got {variance}')
+            # After a prediction over dt = 0, as the streaming estimator fuses a speed
+            # stamped like its position (it brings the stand regime to v = 0 right
+            # after the first position; later it changes nothing).
+            self._running.predict(0.0)
+            state, result = self.imm.update_velocity(self._running.state, speed, variance)
+            self._running.restore(state)
+        return result
+
+    def _update_position(self, z: np.ndarray, R) -> Optional[UpdateResult]:
+        """Correct with a checked position z (1,); the first one starts the filter."""
         R = self.R if R is None else as_covariance('R', R, 1)
         if self._running is None:
             # first_measurement: position from z with variance R, the rest the priors'.

@@ -119,8 +119,12 @@ class StreamingReplay:
         self.has_codes = rows.codes is not None
         est = self.filter.run(rows, first)
         if self.gaps:
-            est = est._replace(updated=np.ones(rows.t.shape[0]) if rows.missing is None
-                               else np.where(rows.missing, 0.0, 1.0))
+            missing = rows.missing
+            if missing is not None and getattr(self.filter.filt, 'partial_rows', False):
+                # Rows with an empty cell (a fix without its speed) updated what they had.
+                missing = ~np.isfinite(rows.z.reshape(rows.t.shape[0], -1)).any(axis=1)
+            est = est._replace(updated=np.ones(rows.t.shape[0]) if missing is None
+                               else np.where(missing, 0.0, 1.0))
         self.rows_done += rows.t.shape[0]
         if not self.smooth:
             return [OutputBlock(first, rows.codes, estimate_columns(est))]

@@ -16,7 +16,10 @@ columns are ignored):
   the first row may be at t0, later rows must increase (times are taken to whole
   nanoseconds, as ROS stamps are).
 * the preset's measurements, ``z_<name>``: ``z_position``, ``z_velocity``,
-  ``z_bearing`` [rad], ``z_range`` [m].
+  ``z_bearing`` [rad], ``z_range`` [m]. The rail preset also reads measured speeds
+  when the header has ``z_velocity`` [m/s] (a GNSS Doppler), with its variance
+  ``var_z_velocity`` [m²/s²]: each row's speed is fused after its position; either
+  may be empty (:class:`~kf_train.batch.RailSeriesFilter`).
 * ``u`` when the preset has a control input: the control applied over the interval
   that ends at that row.
 * optionally ``id``: rows with different ids are independent objects (a fleet of
@@ -71,8 +74,8 @@ from kf_train.cli.filter_options import add_filter_options, filter_options
 from kf_train.estimator import RAIL_FILTER_KINDS
 from kf_train.filters import Filter, FILTER_KINDS, make_filter
 from kf_train.io import is_bag
-from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset
-from kf_train.replay import collector_frozen, load_any_preset, run_engine
+from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset, SPEED_COLUMN
+from kf_train.replay import collector_frozen, input_columns, load_any_preset, run_engine
 import numpy as np
 
 EXIT_OK = 0
@@ -92,6 +95,8 @@ def _parser() -> argparse.ArgumentParser:
         epilog='Table input: a header, then rows with t [s], the measurements z_position, '
                'z_velocity, z_bearing [rad], z_range [m] the preset uses, and u when it '
                'has a control input (the control over the interval ending at the row); '
+               'the rail preset also fuses a measured speed z_velocity [m/s] with its '
+               'variance var_z_velocity [m²/s²] when the table has them; '
                'optionally id: each id is an independent object with its own series. '
                'Output: id (if given), t, each state by name, var_<state>; '
                'predicted_<state> and var_predicted_<state> at t + horizon; '
@@ -138,6 +143,12 @@ def _parser() -> argparse.ArgumentParser:
                           'bag, else the only one of the expected type)')
     bag.add_argument('--control-topic', metavar='NAME', default=None,
                      help="the control topic, for presets with one (default: 'control')")
+    bag.add_argument('--velocity-topic', metavar='NAME', default=None,
+                     help='the measured speeds the rail preset fuses, of type '
+                          'TwistWithCovarianceStamped (-p velocity_type:=twist: TwistStamped '
+                          "with -p measurement_velocity_variance:=V) (default: 'velocity' "
+                          'when the bag has it with that type, as the node subscribes it; '
+                          '-p velocity_type:=none fuses none)')
     return parser
 
 
@@ -157,7 +168,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error('one of --preset NAME or --config FILE is required')
     if args.input is None or args.output is None:
         parser.error('INPUT and --output OUTPUT are required')
-    for option in ('params_file', 'parameter', 'topic', 'control_topic'):
+    for option in ('params_file', 'parameter', 'topic', 'control_topic', 'velocity_topic'):
         if getattr(args, option):
             parser.error(f"--{option.replace('_', '-')} applies to a bag input only")
     check_engine_options(parser, args)
@@ -172,6 +183,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error(str(error))
     try:
         preset = load_any_preset(args.preset, args.config)
+        if isinstance(preset, RailPreset) and SPEED_COLUMN in input_columns(args.input):
+            preset = preset.with_speed()   # the rail IMM fuses the rows' speeds too
         filt = _make_filter(preset, args, options)
         summary = run_engine(
             args.engine, preset, args.input, args.output, filt, horizon_s=args.horizon,
@@ -219,14 +232,16 @@ def _run_bag(args: argparse.Namespace) -> int:
         config = bag.load_config(args.params_file or [], args.parameter or [])
         with collector_frozen():
             summary = bag.replay_bag(args.input, args.output, config, args.topic,
-                                     args.control_topic)
+                                     args.control_topic, args.velocity_topic)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return 1
     rate = summary.measurements / summary.seconds if summary.seconds > 0 else math.inf
     print(f'kf-train replay: {summary.measurements} measurements on '
           f'{summary.measurement_topic}, {summary.controls} controls, '
-          f'{summary.rejected} rejected -> {summary.estimates} estimates in '
+          + (f'{summary.velocities} speeds on {summary.velocity_topic} '
+             f'({summary.velocities_rejected} rejected), ' if summary.velocity_topic else '')
+          + f'{summary.rejected} rejected -> {summary.estimates} estimates in '
           f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
           file=sys.stderr)
     return 0

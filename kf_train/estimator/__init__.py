@@ -10,7 +10,7 @@ out-of-sequence replay, controls, the χ² gate and resets (see
 
 from kf_train.estimator.contract import (
     CONTROL_REJECTION_REASONS, EstimateStep, EstimatorStats, Rejected, REJECTION_REASONS,
-    RESET_REASONS)
+    RESET_REASONS, VELOCITY_REJECTION_REASONS)
 from kf_train.estimator.estimator import StreamEstimator
 from kf_train.estimator.live_presets import (
     check_live_preset, covariance_from_list, covariance_to_list, is_rail, LINEAR_LIVE_PRESETS,
@@ -34,5 +34,5 @@ __all__ = [
     'PF_PARTICLES_RANGE', 'PF_RESAMPLE_THRESHOLD_RANGE', 'PF_SEED_RANGE', 'preset_defaults',
     'RAIL_FILTER_KINDS', 'Rejected', 'REJECTION_REASONS', 'RESET_REASONS', 'resolve_preset',
     'RESTART_AFTER_STALE_RANGE', 'seconds_to_ns', 'SEED_SWITCH', 'StreamEstimator',
-    'UKF_ALPHA_RANGE', 'UKF_BETA_RANGE', 'UKF_KAPPA_RANGE',
+    'UKF_ALPHA_RANGE', 'UKF_BETA_RANGE', 'UKF_KAPPA_RANGE', 'VELOCITY_REJECTION_REASONS',
 ]

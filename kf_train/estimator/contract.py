@@ -28,6 +28,12 @@ CONTROL_REJECTION_REASONS = ('non_finite', 'zero_stamp', 'future_stamp', 'stale_
                              'numerical')
 """Why a control was not used; keys of :attr:`EstimatorStats.control_rejections`."""
 
+VELOCITY_REJECTION_REASONS = ('non_finite', 'bad_variance', 'zero_stamp', 'future_stamp',
+                              'no_state', 'duplicate_stamp', 'stale_stamp', 'outlier',
+                              'numerical')
+"""Why a speed measurement (:meth:`StreamEstimator.process_velocity`) was not fused; keys
+of :attr:`EstimatorStats.velocity_rejections` (``no_state``: no position fused yet)."""
+
 RESET_REASONS = ('manual', 'set_state', 'clock_jump', 'stream_restart', 'outlier_lockout',
                  'non_finite')
 """Why the filter was reset; keys of :attr:`EstimatorStats.resets`."""
@@ -117,6 +123,12 @@ class EstimatorStats(NamedTuple):
     """Fused states kept for out-of-sequence replay."""
     control_count: int
     """Controls kept (by stamp)."""
+    velocities: Dict[str, int]
+    """Speed measurements (:meth:`StreamEstimator.process_velocity`): ``fused``, and
+    ``out_of_sequence`` (of those, how many were fused by rewinding and replaying)."""
+    velocity_rejections: Dict[str, int]
+    """Speed measurements rejected, by reason (:data:`VELOCITY_REJECTION_REASONS`); they
+    never count toward the positions' lock-out."""
 
 
 class Counters:
@@ -132,6 +144,9 @@ class Counters:
         self.controls_accepted = 0
         self.controls_late = 0
         self.provisional = 0
+        self.velocity_rejections = dict.fromkeys(VELOCITY_REJECTION_REASONS, 0)
+        self.velocities_fused = 0
+        self.velocities_out_of_sequence = 0
 
     def snapshot(self, history_length: int, control_count: int) -> EstimatorStats:
         """Return the counts as an :class:`EstimatorStats` (copies of the dicts)."""
@@ -139,7 +154,10 @@ class Counters:
             self.fused, self.out_of_sequence, dict(self.rejections),
             dict(self.control_rejections), dict(self.resets),
             {'accepted': self.controls_accepted, 'late': self.controls_late,
-             'provisional': self.provisional}, history_length, control_count)
+             'provisional': self.provisional}, history_length, control_count,
+            {'fused': self.velocities_fused,
+             'out_of_sequence': self.velocities_out_of_sequence},
+            dict(self.velocity_rejections))
 
 
 def override_variance(override: float, message_variance: float) -> float:
@@ -224,6 +242,31 @@ def check_measurement(settings, model, preset_name: str, max_future_ns: int,
         return np.array([position_m, velocity_mps]), R
     _check_time('', stamp_ns, now_ns, max_future_ns, s.max_future_s)
     return np.array([position_m]), R
+
+
+def check_velocity(settings, max_future_ns: int, stamp_ns: int, velocity_mps,
+                   variance_m2s2, now_ns: Optional[int]) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return (z, R) of a speed measurement, or raise Rejected (or ValueError).
+
+    The checks and their order are a position's: numbers, finite, R > 0 (the
+    ``measurement_velocity_variance`` override, when set, else the message's),
+    stamp > 0, not too far ahead of ``now_ns``.
+    """
+    try:
+        velocity_mps, variance_m2s2 = float(velocity_mps), float(variance_m2s2)
+    except (TypeError, ValueError):
+        raise ValueError(f'velocity and its variance must be numbers, got {velocity_mps!r}, '
+                         f'{variance_m2s2!r}') from None
+    if not math.isfinite(velocity_mps):
+        raise Rejected('non_finite', f'velocity must be finite, got {velocity_mps}')
+    if not math.isfinite(variance_m2s2):
+        raise Rejected('non_finite', f'velocity variance must be finite, got {variance_m2s2}')
+    R = override_variance(settings.measurement_velocity_variance, variance_m2s2)
+    if R <= 0.0:
+        raise Rejected('bad_variance', f'velocity variance must be > 0, got {R}')
+    _check_time('velocity ', stamp_ns, now_ns, max_future_ns, settings.max_future_s)
+    return np.array([velocity_mps]), np.array([[R]])
 
 
 def check_control(preset, max_future_ns: int, max_future_s: float, stamp_ns: int, u,

@@ -112,6 +112,15 @@ Time handling:
   or a stream restart also forgets the controls (their stamps belong to the old
   time line).
 
+Measured speeds (the rail preset: :meth:`StreamEstimator.process_velocity`, a GNSS
+Doppler along the track) are a second input with the same contract and gate (on the
+speed's own NIS), fused by the IMM's velocity update (H = e_1; the learned scale on R
+is the position's and stays out of it) and kept in the same history, so out-of-sequence
+speeds and positions rewind and replay exactly. At one stamp the position goes first
+(dt = 0 to the speed), whichever arrived first. A speed never initialises the filter,
+and its rejections (:data:`~kf_train.estimator.contract.VELOCITY_REJECTION_REASONS`)
+are counted apart and never count toward the lock-out or a stream restart.
+
 Every rejection and reset is counted by reason (:meth:`StreamEstimator.stats`).
 
 The parts live beside this module: the settings (:mod:`~kf_train.estimator.settings`),
@@ -128,7 +137,7 @@ contract in front of them.
 from typing import Optional, Tuple
 
 from kf_train.estimator.contract import (
-    check_control, check_measurement, check_stamp, EstimateStep, EstimatorStats,
+    check_control, check_measurement, check_stamp, check_velocity, EstimateStep, EstimatorStats,
     measurement_noise, override_variance, Rejected, RESET_REASONS)
 from kf_train.estimator.fusion import Fusion
 from kf_train.estimator.history import History
@@ -328,6 +337,39 @@ class StreamEstimator:
             self._fusion.counters.rejections[rejection.reason] += 1
             raise
         return self._fusion.measure(stamp_ns, z, R)
+
+    @property
+    def fuses_velocity(self) -> bool:
+        """Return whether the preset fuses a separate speed (process_velocity: rail)."""
+        return self._config.velocity_model is not None
+
+    def process_velocity(self, stamp_ns: int, velocity_mps: float, variance_m2s2: float, *,
+                         now_ns: Optional[int] = None) -> EstimateStep:
+        """
+        Fuse one measured speed along the track [m/s] (a Doppler); on ValueError nothing changes.
+
+        The rail preset only (:attr:`fuses_velocity`; a plain ValueError for the others):
+        its IMM is corrected by the speed (H = e_1, R = ``variance_m2s2`` [m²/s²], or
+        ``measurement_velocity_variance`` when set; the learned scale on R is the
+        position's and is not applied). The input contract is :meth:`process`'s:
+        :class:`Rejected` with a reason from
+        :data:`~kf_train.estimator.contract.VELOCITY_REJECTION_REASONS` (counted in
+        ``stats().velocity_rejections``, never toward the positions' lock-out or
+        restart), the χ² gate on the speed's own NIS, out-of-sequence fusion within
+        ``history_s``. A speed stamped like a position is fused after it (dt = 0),
+        whichever came first; a speed before the first position is ``no_state``.
+        """
+        if self._config.velocity_model is None:
+            raise ValueError(f'preset {self.preset.name!r} does not fuse a separate speed '
+                             'measurement (the rail preset does)')
+        stamp_ns = check_stamp(stamp_ns)
+        try:
+            z, R = check_velocity(self.settings, self._config.max_future_ns, stamp_ns,
+                                  velocity_mps, variance_m2s2, now_ns)
+        except Rejected as rejection:
+            self._fusion.counters.velocity_rejections[rejection.reason] += 1
+            raise
+        return self._fusion.measure_velocity(stamp_ns, z, R)
 
     def add_control(self, stamp_ns: int, u, *, now_ns: Optional[int] = None
                     ) -> Optional[EstimateStep]:

@@ -41,6 +41,8 @@ class Fusion:
         self.rejected: List[Tuple[int, np.ndarray, np.ndarray]] = []
         self.regroup: List[Tuple[int, np.ndarray, np.ndarray]] = []
         self.counters = Counters()
+        self.newest_is_velocity = False
+        """Whether the newest fused step is a speed (a position of its stamp goes before it)."""
         self.configure(config)
         self.controls: Optional[Controls] = Controls(dim_u) if dim_u else None
 
@@ -54,6 +56,7 @@ class Fusion:
     def reset(self, reason: str) -> None:
         """Forget the state; the next measurement initialises the filter again."""
         self.x = self.P = None
+        self.newest_is_velocity = False
         self.last_stamp_ns = None
         self.history.clear()
         self.consecutive_outliers = 0
@@ -78,12 +81,99 @@ class Fusion:
             return self._initialise(stamp_ns, z, R)
         if stamp_ns > newest:
             return self._fuse_in_order(stamp_ns, z, R)
+        if stamp_ns == newest and self.newest_is_velocity:
+            # The speed of this stamp came first: the position goes before it.
+            if self.history:
+                return self._fuse_out_of_sequence(stamp_ns, z, R)
+            return self._fuse_in_order(stamp_ns, z, R)  # no history: after it, dt = 0
         if stamp_ns == newest:
             self._reject('duplicate_stamp', f'measurement stamp {stamp_ns} ns is not newer than '
                          f'the last fused one, {newest} ns (a duplicate)')
         if newest - stamp_ns < self.history.window_ns:
             return self._fuse_out_of_sequence(stamp_ns, z, R)
         return self._stale(stamp_ns, z, R)
+
+    def measure_velocity(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+        """
+        Fuse a checked speed measurement: in order, out of sequence, or reject it.
+
+        A speed never initialises the filter (``no_state``), is gated on its own NIS,
+        and at a position's stamp is fused after it (dt = 0). Its rejections are
+        counted apart and never count toward the positions' lock-out or restart.
+        """
+        if self.x is None:
+            self._reject_velocity('no_state', 'a speed needs a state: no position has been '
+                                  'fused since start or reset')
+        newest = self.last_stamp_ns
+        if stamp_ns > newest or (stamp_ns == newest and not self.newest_is_velocity):
+            x, P, result, predicted = self._gated_velocity(
+                self.x, self.P, newest, stamp_ns, z, R)
+            self.x, self.P, self.last_stamp_ns = x, P, stamp_ns
+            self.newest_is_velocity = True
+            self.history.commit(Entry(stamp_ns, z, R, self.config.velocity_model, x, P,
+                                      'update', True))
+            self.counters.velocities_fused += 1
+            return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
+        if stamp_ns == newest:
+            self._reject_velocity('duplicate_stamp', f'velocity stamp {stamp_ns} ns is not '
+                                  f'newer than the last fused speed, {newest} ns')
+        if not self.history or newest - stamp_ns >= self.history.window_ns:
+            self._reject_velocity('stale_stamp', (
+                f'velocity stamp {stamp_ns} ns is {(newest - stamp_ns) / NS_PER_S:.6f} s '
+                f'older than the newest fused one, beyond history_s = '
+                f'{self.config.settings.history_s}'))
+        return self._velocity_out_of_sequence(stamp_ns, z, R)
+
+    def _reject_velocity(self, reason: str, message: str,
+                         update: Optional[UpdateResult] = None) -> None:
+        """Count a speed's rejection and raise it (nothing else changes)."""
+        self.counters.velocity_rejections[reason] += 1
+        raise Rejected(reason, message, None, update)
+
+    def _gated_velocity(self, x0, P0, t_a: int, t_b: int, z: np.ndarray, R: np.ndarray):
+        """Return (x, P, result, prediction ahead) after a speed, or reject it."""
+        try:
+            x, P, result = self.config.velocity_model.predict_update(
+                x0, P0, (t_b - t_a) / NS_PER_S, z, R)
+        except NUMERICAL_ERRORS as error:
+            self._reject_velocity('numerical', f'velocity update failed: {error}')
+        if result.nis > self.config.gate_threshold:
+            self._reject_velocity('outlier', (
+                f'velocity NIS {result.nis:.6g} exceeds the gate '
+                f'{self.config.gate_threshold:.6g}; innovation {result.innovation[0]:.6g} '
+                'm/s'), result)
+        try:
+            predicted = self._predict_ahead(x, P)
+        except NUMERICAL_ERRORS as error:
+            self._reject_velocity('numerical', f'prediction failed: {error}')
+        return x, P, result, predicted
+
+    def _velocity_out_of_sequence(self, stamp_ns: int, z: np.ndarray,
+                                  R: np.ndarray) -> EstimateStep:
+        """Rewind to the last state before a speed's stamp, fuse it, replay the later ones."""
+        entries = self.history.entries()
+        try:
+            i = rewind_point(entries, stamp_ns, self.last_stamp_ns, velocity=True)
+        except Rejected as rejection:
+            self.counters.velocity_rejections[rejection.reason] += 1
+            raise
+        anchor = entries[i - 1]
+        x, P, result, _ = self._gated_velocity(anchor.x, anchor.P, anchor.stamp_ns, stamp_ns,
+                                               z, R)
+        rebuilt = entries[:i] + [Entry(stamp_ns, z, R, self.config.velocity_model, x, P,
+                                       'update', True)]
+        try:
+            rebuilt, x, P, _ = replay(rebuilt, entries[i:], None, self.controls)
+            predicted = self._predict_ahead(x, P)
+        except NUMERICAL_ERRORS as error:
+            self._reject_velocity('numerical', f'replay failed: {error}')
+        self.history.replace(rebuilt)
+        self.x, self.P = x, P
+        self.newest_is_velocity = rebuilt[-1].velocity
+        self.counters.velocities_fused += 1
+        self.counters.velocities_out_of_sequence += 1
+        return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
+                          replayed=len(entries) - i)
 
     def control(self, stamp_ns: int, u: np.ndarray) -> Optional[EstimateStep]:
         """Take a checked control; return the corrected estimate if fused ones changed."""
@@ -316,6 +406,7 @@ class Fusion:
                 z: np.ndarray, R: np.ndarray) -> None:
         """Make (x, P) at stamp_ns the newest state and keep it for replay."""
         self.x, self.P, self.last_stamp_ns = x, P, stamp_ns
+        self.newest_is_velocity = False
         self.history.commit(Entry(stamp_ns, z, R, self.config.model, x, P, kind))
         self._after_fusion()
         if self.controls is not None:

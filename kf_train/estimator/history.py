@@ -34,6 +34,8 @@ class Entry(NamedTuple):
     kind: str
     """'init' (initialised the filter), 'update', or 'set' / 'reinit' (set_state, the
     re-initialisation after a lock-out: no rewinding past them)."""
+    velocity: bool = False
+    """A speed measurement (fused after a position of the same stamp), not a position."""
 
 
 class History:
@@ -130,12 +132,29 @@ def initial_state(config, controls: Optional[Controls], locked_out: bool, stamp_
     return x, P, None, u, exact
 
 
-def rewind_point(entries: List[Entry], stamp_ns: int, last_stamp_ns: int) -> int:
-    """Return the index an out-of-sequence stamp goes to in ``entries``, or raise Rejected."""
+def rewind_point(entries: List[Entry], stamp_ns: int, last_stamp_ns: int,
+                 velocity: bool = False) -> int:
+    """
+    Return the index an out-of-sequence stamp goes to in ``entries``, or raise Rejected.
+
+    At one stamp a position goes before a speed (``velocity``): the order in which a
+    receiver's epoch is fused whichever message came first.
+    """
     stamps = [entry.stamp_ns for entry in entries]
     i = bisect.bisect_left(stamps, stamp_ns)
-    if i < len(stamps) and stamps[i] == stamp_ns:
-        raise Rejected('duplicate_stamp', f'measurement stamp {stamp_ns} ns was fused already')
+    while i < len(stamps) and stamps[i] == stamp_ns:
+        if entries[i].velocity == velocity:
+            raise Rejected('duplicate_stamp',
+                           f'measurement stamp {stamp_ns} ns was fused already')
+        if entries[i].velocity:
+            break       # a position goes before the speed of its stamp
+        i += 1          # a speed goes after the position of its stamp
+    if velocity:
+        if i == 0:
+            raise Rejected('stale_stamp', (
+                f'velocity stamp {stamp_ns} ns is older than the oldest state kept to '
+                f'rewind to ({stamps[0] if stamps else "none"} ns)'))
+        return i
     if i == 0 and (not entries or entries[0].kind != 'init'):
         what = 'the state was set' if entries else 'no state is kept (history_s)'
         raise Rejected('stale_stamp', (

@@ -26,8 +26,15 @@ class IMMModel:
     """Pure (x, P) steps of an IMM, a StepModel; see the module docstring."""
 
     def __init__(self, imm: IMM, H, R, state_names, measurement_names=('position',),
-                 probabilities=None, states: Optional[Dict[int, tuple]] = None):
-        """Wrap ``imm`` (its modes measure z = H x with default noise R)."""
+                 probabilities=None, states: Optional[Dict[int, tuple]] = None,
+                 measured: Optional[int] = None):
+        """
+        Wrap ``imm`` (its modes measure z = H x with default noise R).
+
+        ``measured``: the index k of a state measured directly instead (H = e_k, a
+        second sensor: :meth:`~kf_train.filters.IMM.update_component`); see
+        :meth:`measuring`.
+        """
         self.imm = imm
         self.H = np.array(H, dtype=float)
         self.R = np.array(R, dtype=float)
@@ -37,6 +44,26 @@ class IMMModel:
         self.dim_x, self.dim_z = len(self.state_names), len(self.measurement_names)
         self.probabilities = probabilities
         self.states = {} if states is None else states
+        self.measured = measured
+
+    def measuring(self, index: int) -> 'IMMModel':
+        """
+        Return the model of the same IMM measuring state ``index`` directly (H = e_index).
+
+        It shares this model's states, so a history may hold steps of both (a position,
+        then a speed) and a rewind and replay repeats each step with its own model. Its
+        updates need their R (a sensor of its own: no default noise).
+        """
+        H = np.zeros((1, self.dim_x))
+        H[0, index] = 1.0
+        return IMMModel(self.imm, H, self.R, self.state_names, (self.state_names[index],),
+                        self.probabilities, self.states, index)
+
+    def _update(self, state: IMMState, z, R):
+        """Return the IMM's update of ``state`` by z: its own measurement or ``measured``."""
+        if self.measured is None:
+            return self.imm.update(state, z, R)
+        return self.imm.update_component(state, z, R, self.measured)   # R required
 
     def state_of(self, x: np.ndarray, P: np.ndarray) -> IMMState:
         """Return the IMM state behind x (all modes at (x, P) if x is not one of ours)."""
@@ -65,7 +92,7 @@ class IMMModel:
 
     def update(self, x, P, z, R=None) -> Tuple[np.ndarray, np.ndarray, UpdateResult]:
         """Return the combined (x, P) after z, and the mixture's innovation statistics."""
-        state, result = self.imm.update(self.state_of(x, P), z, R)
+        state, result = self._update(self.state_of(x, P), z, R)
         x, P = self._keep(state)
         return x, P, result
 
@@ -77,7 +104,7 @@ class IMMModel:
         The IMM state in between is never combined into an (x, P) (nothing reads it):
         the streaming estimator fuses an in-order measurement with this one call.
         """
-        state, result = self.imm.update(self.imm.predict(self.state_of(x, P), dt_s), z, R)
+        state, result = self._update(self.imm.predict(self.state_of(x, P), dt_s), z, R)
         x, P = self._keep(state)
         return x, P, result
 

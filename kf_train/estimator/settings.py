@@ -249,6 +249,9 @@ class Configuration(NamedTuple):
     """first_measurement mode: the initial variance of each state (measured ones are
     replaced by R): first_velocity_std_mps² for the linear presets, the diagonal of the
     initial covariance (its priors) for the rail preset."""
+    velocity_model: Optional[StepModel] = None
+    """The model measuring the velocity alone (a speed sensor), sharing ``model``'s
+    states; None for presets that do not fuse a separate speed (all but ``rail``)."""
 
 
 def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings],
@@ -286,4 +289,13 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
         seconds_to_ns(settings.max_future_s), seconds_to_ns(horizon_s),
         seconds_to_ns(nominal_period_s), chi2_quantile(settings.gate_probability, model.dim_z),
         tuple(float(v) for v in np.diag(initial_covariance)) if is_rail(preset)
-        else (settings.first_velocity_std_mps ** 2,) * preset.dim_x)
+        else (settings.first_velocity_std_mps ** 2,) * preset.dim_x,
+        _velocity_model(model))
+
+
+def _velocity_model(model: StepModel) -> Optional[StepModel]:
+    """Return ``model`` measuring its velocity state alone, if it can (the rail IMM)."""
+    measuring = getattr(model, 'measuring', None)
+    if measuring is None or 'velocity' not in model.state_names:
+        return None
+    return measuring(model.state_names.index('velocity'))

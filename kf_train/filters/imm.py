@@ -399,24 +399,57 @@ class IMM:
                              state.noise)
         return new_state, self._mixture_innovation(state, results)
 
-    def _update_stacked(self, state: IMMState, z, R) -> Tuple[IMMState, UpdateResult]:
-        """Do :meth:`update` on the stack: every mode a LinearModel measuring a scalar."""
+    def update_component(self, state: IMMState, z, R, index: int
+                         ) -> Tuple[IMMState, UpdateResult]:
+        """
+        Return the state corrected by a direct measurement z of state ``index`` (H = e_index).
+
+        A second sensor of the same modes (the rail model's Doppler speed: index 1): the
+        modes' own measurement is not involved, R (1x1) is used as given, and the learned
+        scale (the state's ``noise``, which belongs to the modes' own measurement) is
+        neither applied nor taught. The IMM arithmetic is :meth:`update`'s, stacked;
+        the modes must be LinearModels measuring a scalar.
+        """
+        stack = self._stack
+        if stack is None:
+            raise ValueError('a component update needs modes that are LinearModels '
+                             'measuring a scalar')
+        n = stack.dim_x
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < n:
+            raise ValueError(f'index must be a state index in [0, {n - 1}], got {index!r}')
+        H = np.zeros((self.mode_count, 1, n))
+        H[:, 0, index] = 1.0
+        return self._update_stacked(state, z, R, H, index, learn=False)
+
+    def _update_stacked(self, state: IMMState, z, R, H: Optional[np.ndarray] = None,
+                        selected: Optional[int] = None, learn: bool = True
+                        ) -> Tuple[IMMState, UpdateResult]:
+        """
+        Do :meth:`update` on the stack: every mode a LinearModel measuring a scalar.
+
+        ``H`` (N, 1, n) and ``selected`` replace the modes' own measurement (then R
+        must be given); ``learn`` False neither applies nor teaches the learned scale.
+        """
         stack = self._stack
         z = _measurement(z)
+        if H is None:
+            H, selected = stack.H, stack.selected
+        elif R is None:
+            raise ValueError('R must be given when H is not the modes own measurement')
         reported = stack.R if R is None else _noise_row(R)
         noise = state.noise
         # R = s r: the learned scale on the variance given (exactly r while s is 1).
-        R = reported if noise.scale == 1.0 else reported * noise.scale
-        result = imm_stack.update(state.means, state.covariances, z, stack.H, R,
-                                  stack.identity, stack.selected)
+        R = reported if noise.scale == 1.0 or not learn else reported * noise.scale
+        result = imm_stack.update(state.means, state.covariances, z, H, R,
+                                  stack.identity, selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
         y, S, nis, gain = imm_stack.mixture_innovation(state.probabilities, state.means, result)
         gate_nis = None
-        if noise.scale < 1.0:
+        if learn and noise.scale < 1.0:
             # Weighted with the learned R, gated with the R given: a fix is an outlier
             # only if even the receiver's own accuracy cannot explain it.
             gate_nis = y * y / (S + (1.0 - noise.scale) * float(reported[0]))
-        if self.adaptation is not None:
+        if self.adaptation is not None and learn:
             noise = self.adaptation.learn(noise, y, S, float(reported[0]))
         new_state = IMMState(_read_only(result.means), _read_only(result.covariances),
                              _read_only(posterior), noise)

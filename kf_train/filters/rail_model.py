@@ -70,6 +70,7 @@ STAND, ACCELERATE, CRUISE, BRAKE = range(4)
 STOPPING = (ACCELERATE, CRUISE, BRAKE)
 """The regimes a slow train may stop from: braking to a halt, or 'cruising' at a crawl
 (a train that holds no speed is standing, whatever the regime it came from)."""
+VELOCITY = STATE_NAMES.index('velocity')
 _H = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
 _CACHE_SIZE = 64
 
@@ -354,7 +355,27 @@ class RailModel(IMM):
 
     def update(self, state: IMMState, z, R=None):
         """Return the IMM's update, no regime's mean velocity below 0 (:func:`hold_velocity`)."""
-        state, result = super().update(state, z, R)
+        return self._held(*super().update(state, z, R))
+
+    def update_component(self, state: IMMState, z, R, index: int):
+        """Return the IMM's update by a measurement of state ``index``, velocities held."""
+        return self._held(*super().update_component(state, z, R, index))
+
+    def update_velocity(self, state: IMMState, velocity_mps, variance_m2s2):
+        """
+        Return the state corrected by a measured speed (a Doppler, an odometer) [m/s].
+
+        H = e_1 (the velocity), R = ``variance_m2s2`` as given: the learned scale is
+        the position's (:mod:`~kf_train.filters.noise_adaptation`) and a speed neither
+        uses nor teaches it. Every regime is corrected and weighed by the speed's
+        likelihood (a standing train's v is exactly 0), and no mean velocity stays
+        below 0 (:func:`hold_velocity`).
+        """
+        return self.update_component(state, velocity_mps, [[variance_m2s2]], VELOCITY)
+
+    @staticmethod
+    def _held(state: IMMState, result):
+        """Return (state with no regime's mean velocity below 0, result)."""
         means = hold_velocity(state.means, state.covariances)
         if means is not state.means:
             means.flags.writeable = False

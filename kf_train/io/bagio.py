@@ -6,8 +6,8 @@ typestore holds the standard messages), so nothing here needs rclpy or a ROS ins
 ``pip install 'kf_train[bag]'``.
 
 Reading (:class:`BagInput`): a rosbag2 directory (MCAP or sqlite3 storage, with its
-metadata.yaml) or a single ``.mcap`` (or ``.db3``) file. Two topics are used, the
-rest is ignored:
+metadata.yaml) or a single ``.mcap`` (or ``.db3``) file. Up to three topics are used,
+the rest is ignored:
 
 * the measurement topic, of the type the preset measures (:func:`expected_types`):
   geometry_msgs/msg/PoseWithCovarianceStamped for a position (``pose.pose.position.x``,
@@ -15,7 +15,12 @@ rest is ignored:
   (``pose.pose.position.x`` / ``pose.covariance[0]``, ``twist.twist.linear.x`` /
   ``twist.covariance[0]``), as the estimator node subscribes them;
 * the control topic where the preset has one: geometry_msgs/msg/AccelStamped
-  (``accel.linear.x``) or geometry_msgs/msg/TwistStamped (``twist.linear.x``).
+  (``accel.linear.x``) or geometry_msgs/msg/TwistStamped (``twist.linear.x``);
+* the speeds' topic where the configuration fuses them (the rail preset's
+  ``velocity``): geometry_msgs/msg/TwistWithCovarianceStamped (``twist.twist.linear.x``,
+  variance ``twist.covariance[0]``) or geometry_msgs/msg/TwistStamped, as
+  :class:`Velocity` tuples; left to the default, the bag's ``velocity`` topic if it
+  has that type, else none.
 
 A topic name given explicitly must be in the bag (a relative name matches ``/name``).
 Left to the default (``measurement``, ``control``), the name is resolved in the bag
@@ -41,12 +46,15 @@ from typing import Callable, Dict, Iterator, NamedTuple, Optional, Sequence, Tup
 from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_layout import FieldReader
 from kf_train.io.bagio_types import (
-    ACCEL, CONTROL_TYPES, MEASUREMENT_TYPES, ODOMETRY, POSE, TWIST)
+    ACCEL, CONTROL_TYPES, MEASUREMENT_TYPES, ODOMETRY, POSE, TWIST, TWIST_COVARIANCE,
+    VELOCITY_TYPES)
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.serde import SerdeError
 
 NAN = float('nan')
+__all__ = ['BagInput', 'Control', 'expected_types', 'Measurement', 'resolve_topic',
+           'Velocity', 'VELOCITY_TYPES']
 # At most this many topics are listed in an error message.
 LISTED_TOPICS = 8
 # What the rosbags reader raises on broken storage; decoding adds SerdeError. A garbled
@@ -67,6 +75,16 @@ class Measurement(NamedTuple):
     variance_m2: float
     velocity_mps: float
     velocity_variance_m2s2: float
+
+
+class Velocity(NamedTuple):
+    """One measured speed (the estimator's ``velocity`` topic); variance NaN for a TwistStamped."""
+
+    record_ns: int
+    stamp_ns: int
+    frame_id: str
+    velocity_mps: float
+    variance_m2s2: float
 
 
 class Control(NamedTuple):
@@ -141,6 +159,23 @@ def resolve_topic(topics: Dict[str, Optional[str]], role: str, name: Optional[st
                      f'{expected_type} ({_describe(topics)})')
 
 
+def _velocity_topic(topics: Dict[str, Optional[str]], kind: Optional[str],
+                    name: Optional[str]) -> Optional[str]:
+    """Return the speeds' topic: ``name`` (it must exist), else ``velocity`` if so typed."""
+    if kind is None:
+        if name is not None:
+            raise ValueError(f'velocity topic {name!r} given, but this configuration fuses no '
+                             'speed (preset rail, velocity_type not none)')
+        return None
+    if name is not None:
+        return resolve_topic(topics, 'velocity', name, 'velocity', kind)
+    candidates = [topic for topic in topics
+                  if topic == '/velocity' or topic.endswith('/velocity')]
+    if len(candidates) == 1 and topics[candidates[0]] == kind:
+        return candidates[0]
+    return None
+
+
 _STAMP = ((('header', 'stamp', 'sec'), 'i'), (('header', 'stamp', 'nanosec'), 'I'))
 _FIELDS = {
     POSE: _STAMP + ((('pose', 'pose', 'position', 'x'), 'd'), (('pose', 'covariance', 0), 'd')),
@@ -149,12 +184,14 @@ _FIELDS = {
                         (('twist', 'covariance', 0), 'd')),
     ACCEL: _STAMP + ((('accel', 'linear', 'x'), 'd'),),
     TWIST: _STAMP + ((('twist', 'linear', 'x'), 'd'),),
+    TWIST_COVARIANCE: _STAMP + ((('twist', 'twist', 'linear', 'x'), 'd'),
+                                (('twist', 'covariance', 0), 'd')),
 }
 """The fields read from each input type: the stamp, then the values (module doc)."""
 
 
-def _decoder(kind: str, is_measurement: bool) -> Callable:
-    """Return a function (raw bytes, record time) -> Measurement or Control for ``kind``."""
+def _decoder(kind: str, role: str) -> Callable:
+    """Return a function (raw bytes, record time) -> the message of ``role`` for ``kind``."""
     # FieldReader gives Python floats and ints, whichever way it read them.
     read = FieldReader(kind, _FIELDS[kind]).read
 
@@ -172,7 +209,14 @@ def _decoder(kind: str, is_measurement: bool) -> Callable:
         frame_id, (sec, nanosec, value) = read(raw)
         return Control(record_ns, sec * NS_PER_S + nanosec, frame_id, value)
 
-    if not is_measurement:
+    def velocity(raw, record_ns: int) -> Velocity:
+        frame_id, (sec, nanosec, *values) = read(raw)
+        return Velocity(record_ns, sec * NS_PER_S + nanosec, frame_id, values[0],
+                        values[1] if len(values) > 1 else NAN)
+
+    if role == 'velocity':
+        return velocity
+    if role == 'control':
         return control
     return odometry if kind == ODOMETRY else measurement
 
@@ -186,8 +230,18 @@ class BagInput:
 
     def __init__(self, path: Union[str, Path], measurement_type: str = POSE,
                  control_type: Optional[str] = None, measurement_topic: Optional[str] = None,
-                 control_topic: Optional[str] = None):
-        """Open the bag at ``path`` and choose the topics (module doc); ValueError if not."""
+                 control_topic: Optional[str] = None, velocity_type: Optional[str] = None,
+                 velocity_topic: Optional[str] = None):
+        """
+        Open the bag at ``path`` and choose the topics (module doc); ValueError if not.
+
+        ``velocity_type`` (TwistWithCovarianceStamped or TwistStamped; None: no speeds)
+        reads the speeds of ``velocity_topic``; without a name, of ``velocity`` resolved
+        in the bag when it has that type, else none.
+        """
+        if velocity_type not in (None, TWIST_COVARIANCE, TWIST):
+            raise ValueError(f'velocity_type must be None, {TWIST_COVARIANCE} or {TWIST}, '
+                             f'got {velocity_type!r}')
         if measurement_type not in (POSE, ODOMETRY):
             raise ValueError(f'measurement_type must be {POSE} or {ODOMETRY}, '
                              f'got {measurement_type!r}')
@@ -198,13 +252,13 @@ class BagInput:
         self._reader = _open_reader(self.path)
         try:
             self._choose_topics(measurement_type, control_type, measurement_topic,
-                                control_topic)
+                                control_topic, velocity_type, velocity_topic)
         except BaseException:
             self.close()
             raise
 
     def _choose_topics(self, measurement_type, control_type, measurement_topic,
-                       control_topic) -> None:
+                       control_topic, velocity_type=None, velocity_topic=None) -> None:
         """Pick the topics and their connections; check their serialisation."""
         try:
             topics = {name: info.msgtype for name, info in self._reader.topics.items()}
@@ -215,11 +269,12 @@ class BagInput:
                                                    'measurement', measurement_type)
             self.control_topic = None if control_type is None else resolve_topic(
                 topics, 'control', control_topic, 'control', control_type)
+            self.velocity_topic = _velocity_topic(topics, velocity_type, velocity_topic)
         except ValueError as error:
             raise ValueError(f'{self.path}: {error}') from None
         self.measurement_type, self.control_type = measurement_type, control_type
-        self._connections = [c for c in self._reader.connections
-                             if c.topic in (self.measurement_topic, self.control_topic)]
+        self._connections = [c for c in self._reader.connections if c.topic in (
+            self.measurement_topic, self.control_topic, self.velocity_topic)]
         for connection in self._connections:
             serialization = getattr(connection.ext, 'serialization_format', 'cdr')
             if serialization != 'cdr':
@@ -229,6 +284,8 @@ class BagInput:
                                      if c.topic == self.measurement_topic)
         self.control_count = sum(c.msgcount for c in self._connections
                                  if c.topic == self.control_topic)
+        self.velocity_count = sum(c.msgcount for c in self._connections
+                                  if c.topic == self.velocity_topic)
 
     def _error(self, what: str, error: BaseException) -> ValueError:
         """Return a one-line ValueError naming the bag, what failed and why."""
@@ -237,8 +294,9 @@ class BagInput:
 
     def messages(self) -> Iterator[Union[Measurement, Control]]:
         """Yield the measurements and controls in recorded order."""
-        decoders = {c.id: _decoder(c.msgtype, c.topic == self.measurement_topic)
-                    for c in self._connections}
+        roles = {self.measurement_topic: 'measurement', self.control_topic: 'control',
+                 self.velocity_topic: 'velocity'}
+        decoders = {c.id: _decoder(c.msgtype, roles[c.topic]) for c in self._connections}
         index = 0
         try:
             for connection, record_ns, raw in self._reader.messages(self._connections):

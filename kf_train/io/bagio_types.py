@@ -14,6 +14,8 @@ MEASUREMENT_TYPES = {('position',): POSE, ('position', 'velocity'): ODOMETRY}
 """A preset's measurement names -> the message type of its ``measurement`` topic."""
 CONTROL_TYPES = {'acceleration': ACCEL, 'velocity': TWIST}
 """A preset's control name -> the message type of its ``control`` topic."""
+VELOCITY_TYPES = {'twist_with_covariance': TWIST_COVARIANCE, 'twist': TWIST}
+"""The estimator's ``velocity_type`` -> the message type of its ``velocity`` topic."""
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 """rosbags' definitions of the ROS 2 Jazzy standard messages."""

@@ -12,7 +12,7 @@ from kf_train.presets.loader import (
     MOTIONS, Preset, PRESET_DIR, preset_from_mapping, PRESET_NAMES, preset_path)
 from kf_train.presets.rail import (
     is_rail_preset_file, load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_NAME,
-    RAIL_PRESET_PATH, RailPreset)
+    RAIL_PRESET_PATH, RailPreset, SPEED_COLUMN, SPEED_VARIANCE_COLUMN)
 from kf_train.presets.structure import INITIALIZATIONS, is_constant_velocity, measured_states
 
 __all__ = [
@@ -20,5 +20,6 @@ __all__ = [
     'load_preset_file', 'MOTIONS', 'Preset', 'PRESET_DIR', 'preset_from_mapping',
     'PRESET_NAMES', 'preset_path', 'is_rail_preset_file', 'load_rail_preset',
     'RAIL_PRESET_NAME', 'RAIL_PRESET_PATH', 'rail_preset_from_mapping', 'RailPreset',
+    'SPEED_COLUMN', 'SPEED_VARIANCE_COLUMN',
     'INITIALIZATIONS', 'is_constant_velocity', 'measured_states',
 ]

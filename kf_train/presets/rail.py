@@ -32,6 +32,13 @@ _KEYS = {'name', 'description', 'notes', 'filter', 'model', 'states', 'measureme
          'R', 'nominal_period_s', 'horizon_s', 'parameters'}
 
 
+SPEED_COLUMN = 'z_velocity'
+"""The offline column of a measured speed along the track [m/s] (a GNSS Doppler)."""
+SPEED_VARIANCE_COLUMN = 'var_' + SPEED_COLUMN
+"""Its variance [m²/s²] (``var_<column>``, as the outputs name a variance)."""
+SPEED_MEASUREMENTS = ('position', 'velocity', 'velocity_variance')
+
+
 class RailPreset(NamedTuple):
     """
     The rail preset as read from its file.
@@ -48,6 +55,10 @@ class RailPreset(NamedTuple):
     nominal_period_s: float
     horizon_s: Optional[float]
     source: str
+    speed: bool = False
+    """Offline with measured speeds (:meth:`with_speed`): each row holds a position, a
+    speed and its variance (``z_position``, ``z_velocity``, ``var_z_velocity``), each
+    cell may be empty."""
 
     linear = False
     """The motion is a mixture of regimes, not one linear model."""
@@ -62,8 +73,8 @@ class RailPreset(NamedTuple):
 
     @property
     def measurement_names(self) -> Tuple[str, ...]:
-        """Return ('position',)."""
-        return ('position',)
+        """Return ('position',), with speeds ('position', 'velocity', 'velocity_variance')."""
+        return SPEED_MEASUREMENTS if self.speed else ('position',)
 
     @property
     def control_names(self) -> Tuple[str, ...]:
@@ -82,8 +93,8 @@ class RailPreset(NamedTuple):
 
     @property
     def dim_z(self) -> int:
-        """Return 1 (the position)."""
-        return 1
+        """Return 1 (the position), with speeds 3 (position, speed, its variance)."""
+        return len(self.measurement_names)
 
     @property
     def dim_u(self) -> int:
@@ -114,8 +125,14 @@ class RailPreset(NamedTuple):
         return self.parameters.initial_covariance(self.parameters.noise_std_m ** 2)
 
     def measurement_columns(self) -> Tuple[Tuple[str, ...], ...]:
-        """Return the CSV column of the measurement: (('z_position',),)."""
+        """Return the CSV columns of the measurement: (('z_position',),), plus the speed's."""
+        if self.speed:
+            return (('z_position',), (SPEED_COLUMN,), (SPEED_VARIANCE_COLUMN,))
         return (('z_position',),)
+
+    def with_speed(self) -> 'RailPreset':
+        """Return this preset reading measured speeds too (offline: the speed's columns)."""
+        return self._replace(speed=True)
 
     def control_columns(self) -> Tuple[str, ...]:
         """Return () (no control input)."""

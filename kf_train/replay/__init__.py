@@ -22,12 +22,12 @@ from kf_train.replay.memory import (
     check_bank_times, load_any_preset, output_columns, replay, ReplaySummary, run_preset,
     smooth_bank)
 from kf_train.replay.progress import counted, Progress
-from kf_train.replay.stream import is_parquet, stream_replay
+from kf_train.replay.stream import input_columns, is_parquet, stream_replay
 
 __all__ = [
     'bag', 'check_bank_times', 'CODECS', 'collector_frozen', 'counted', 'dask_replay',
-    'ENGINES', 'is_parquet', 'load_any_preset', 'output_columns', 'Progress', 'replay',
-    'ReplaySummary', 'run_engine', 'run_preset', 'smooth_bank', 'stream_replay',
+    'ENGINES', 'input_columns', 'is_parquet', 'load_any_preset', 'output_columns', 'Progress',
+    'replay', 'ReplaySummary', 'run_engine', 'run_preset', 'smooth_bank', 'stream_replay',
 ]
 
 _LAZY = ('bag',)

@@ -15,7 +15,11 @@ late control included.
 
 Topics: ``--topic`` the measurement topic (default ``measurement`` resolved in the
 bag, else the only one of the preset's type), ``--control-topic`` likewise where the
-preset has a control input.
+preset has a control input, ``--velocity-topic`` the measured speeds the rail preset
+fuses (``velocity_type``: TwistWithCovarianceStamped by default; default topic: the
+bag's ``velocity`` if it has that type, as the live node subscribes it; ``-p
+velocity_type:=none`` fuses none). Speeds go through the session's
+:meth:`~kf_train.ros.session.EstimatorSession.on_velocity`, as the node's callback.
 
 Output (``--output``):
 
@@ -23,7 +27,7 @@ Output (``--output``):
   (``position``, ``velocity``), ``var_<state>``, ``predicted_<state>`` and
   ``var_predicted_<state>`` (at t + horizon_s), ``nis`` (of the measurement that step
   fused; empty when it fused none: the filter's initialisation, a correction after a
-  late control). Numbers as Python's shortest round-trip ``repr``.
+  late control, a speed). Numbers as Python's shortest round-trip ``repr``.
 * a directory or ``X.mcap``: a rosbag2 MCAP bag (:class:`kf_train.io.bagio_output.
   OutputBag`) with ``estimate``, ``prediction``, ``innovation``, ``/diagnostics``
   (every ``diagnostics_period_s`` of record time, stamped with it) and, for a preset
@@ -58,6 +62,10 @@ class BagReplaySummary(NamedTuple):
     record_span_s: float
     seconds: float
     measurement_topic: str
+    velocities: int = 0
+    """Speeds read (0 without a velocity topic)."""
+    velocity_topic: Optional[str] = None
+    velocities_rejected: int = 0
 
 
 def load_config(params_files: List[str], overrides: List[str]):
@@ -94,7 +102,8 @@ class BagRun:
         record time (from the first message's), before the first message at or after.
         """
         messages = counted(self.bag.messages(), self.bag.measurement_count
-                           + self.bag.control_count, 'msg', 'replay')   # a bar after 2 s
+                           + self.bag.control_count + self.bag.velocity_count, 'msg',
+                           'replay')   # a bar after 2 s
         first = next(messages, None)
         if first is None:
             return
@@ -104,7 +113,7 @@ class BagRun:
         period_ns = max(1, round(self.config.options.diagnostics_period_s * NS_PER_S))
         next_diagnostics_ns = first.record_ns + period_ns
         on_measurement, on_control = session.on_measurement, session.on_control
-        measurement_type = bagio.Measurement
+        measurement_type, velocity_type = bagio.Measurement, bagio.Velocity
         for message in itertools.chain((first,), messages):
             record_ns = message.record_ns
             while diagnostics is not None and record_ns >= next_diagnostics_ns:
@@ -112,8 +121,11 @@ class BagRun:
                 diagnostics(next_diagnostics_ns, session.diagnostics(next_diagnostics_ns))
                 next_diagnostics_ns += period_ns
             self.now_ns = record_ns
-            if type(message) is measurement_type:
+            kind = type(message)
+            if kind is measurement_type:
                 yield record_ns, on_measurement(message, record_ns)
+            elif kind is velocity_type:
+                yield record_ns, session.on_velocity(message, record_ns)
             else:
                 yield record_ns, on_control(message, record_ns)
 
@@ -216,15 +228,19 @@ def write_bag(run: BagRun, path: str, counts: dict) -> None:
 
 
 def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = None,
-               control_topic: Optional[str] = None) -> BagReplaySummary:
+               control_topic: Optional[str] = None,
+               velocity_topic: Optional[str] = None) -> BagReplaySummary:
     """Replay ``bag_path`` with the node configuration ``config``; ValueError (one line)."""
     start = time.perf_counter()
     preset = resolve_preset(config.settings.preset)
     measurement_type, control_type = bagio.expected_types(preset.measurement_names,
                                                           preset.control_names)
+    # The speeds the node subscribes: the rail preset's, unless velocity_type is none.
+    velocity_type = bagio.VELOCITY_TYPES.get(config.options.velocity_type) \
+        if is_rail(preset) else None
     counts = {'estimates': 0}
     with bagio.BagInput(bag_path, measurement_type, control_type, topic,
-                        control_topic) as bag:
+                        control_topic, velocity_type, velocity_topic) as bag:
         run = BagRun(config, bag)
         (write_csv if output_path.endswith('.csv') else write_bag)(run, output_path, counts)
         session = run.session
@@ -232,4 +248,5 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
             session.received if session else 0, session.controls_received if session else 0,
             counts['estimates'], session.rejected if session else 0,
             (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
-            bag.measurement_topic)
+            bag.measurement_topic, session.velocities_received if session else 0,
+            bag.velocity_topic, session.velocities_rejected if session else 0)

@@ -119,6 +119,16 @@ class Source:
         return row + 2
 
 
+def input_columns(path: str) -> List[str]:
+    """Return the column names of a CSV or Parquet input ([] for standard input)."""
+    if path == '-':
+        return []
+    if is_parquet(path):
+        return columnar.parquet_columns(path)
+    with _open(path) as stream:
+        return _header_of(path, stream.readline())
+
+
 def _header_of(path: str, data: bytes) -> List[str]:
     """Return the header's names, checked as the in-memory replay checks them."""
     head = data.partition(b'\n')[0]

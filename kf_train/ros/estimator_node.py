@@ -31,6 +31,16 @@ acceleration to the preset's own process noise (constant-velocity presets only).
   (geometry_msgs/TwistStamped, ``twist.linear.x`` = measured speed [m/s]); the state
   is the position alone, so ``estimate`` carries no velocity (``twist.linear.x`` 0,
   variance 1e9, as for every unestimated dimension).
+* ``rail``: subscribes ``velocity`` too (``velocity_type``:
+  geometry_msgs/TwistWithCovarianceStamped by default, speed ``twist.twist.linear.x``
+  [m/s] with variance ``twist.covariance[0]``, as the u-blox and NMEA drivers publish
+  a Doppler speed; ``twist`` for geometry_msgs/TwistStamped with the variance
+  ``measurement_velocity_variance``; ``none``: no subscription). Each speed corrects
+  the IMM (:meth:`~kf_train.estimator.StreamEstimator.process_velocity`: gated on its
+  own NIS, out of sequence within ``history_s``, after the position of the same
+  stamp) and the corrected estimate and prediction are published; its frame is not
+  checked (the body frame, x along the track), its rejections are counted apart
+  (``velocities_rejected.<reason>``) and never lock the positions out.
 * ``cv-position`` (seed 003, dt = 1 s): as the train.
 * ``cv-position-velocity`` (seed 003 variant): ``measurement`` is a nav_msgs/Odometry
   (position ``pose.pose.position.x``, variance ``pose.covariance[0]``; velocity
@@ -166,7 +176,7 @@ class EstimatorNode(Node):
     """Estimates the train's (or a preset's) position and velocity, predicts them ahead."""
 
     NODE_NAME = 'estimator'
-    GATED_CALLBACKS = ('_on_measurement', '_on_control', '_on_set_state',
+    GATED_CALLBACKS = ('_on_measurement', '_on_velocity', '_on_control', '_on_set_state',
                        '_on_diagnostics_timer', '_on_watch_timer')
     """What a managed node runs only while active (kf_train.ros.lifecycle)."""
 
@@ -252,6 +262,11 @@ class EstimatorNode(Node):
         self.subscription = self._subscribe(
             Odometry if self.measures_velocity else PoseWithCovarianceStamped,
             'measurement', self._on_measurement, qos, raw=not self.measures_velocity)
+        self.velocity_subscription = None
+        if self.session.fuses_velocity:
+            self.velocity_subscription = self._subscribe(
+                messages.VELOCITY_MESSAGES[options.velocity_type], 'velocity',
+                self._on_velocity, qos)
         self.estimate_pub = self._publisher(Odometry, 'estimate')
         self.prediction_pub = self._publisher(Odometry, 'prediction')
         self.innovation_pub = self._publisher(Vector3Stamped, 'innovation')
@@ -320,6 +335,11 @@ class EstimatorNode(Node):
         self._last_measurement = measurement  # its variances: the gate's reach
         self._publish(self.session.on_measurement(measurement,
                                                   self.get_clock().now().nanoseconds))
+
+    def _on_velocity(self, msg) -> None:
+        """Fuse one measured speed; publish the estimate and prediction it corrected."""
+        self._publish(self.session.on_velocity(messages.from_velocity_msg(msg),
+                                               self.get_clock().now().nanoseconds))
 
     def _on_control(self, msg) -> None:
         """Take one control; publish the estimate again if it corrected it."""

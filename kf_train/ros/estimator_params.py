@@ -15,14 +15,18 @@ from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
 from kf_train.estimator import (
     DEFAULT_PRESET, EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
-    LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE, PF_PARTICLES_RANGE,
-    PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults, RESTART_AFTER_STALE_RANGE,
-    UKF_ALPHA_RANGE, UKF_BETA_RANGE, UKF_KAPPA_RANGE)
+    is_rail, LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE,
+    PF_PARTICLES_RANGE, PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults,
+    resolve_preset, RESTART_AFTER_STALE_RANGE, UKF_ALPHA_RANGE, UKF_BETA_RANGE,
+    UKF_KAPPA_RANGE)
 from kf_train.filters import FILTER_KINDS
 from kf_train.ros.param_spec import (
     BIG, MANAGED_DESCRIPTION, ParameterError, ParamSpec, ParamTable)
 
 QOS_RELIABILITIES = ('best_effort', 'reliable')
+VELOCITY_TYPES = ('twist_with_covariance', 'twist', 'none')
+"""The ``velocity`` topic's type (parameter velocity_type): TwistWithCovarianceStamped,
+TwistStamped (variance measurement_velocity_variance) or no subscription."""
 STALE_OUTPUTS = ('stop', 'predict')
 """What a stale state does to estimate and prediction (parameter stale_output)."""
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
@@ -103,6 +107,15 @@ PARAMETERS_FIXED = (
              'while the node is busy). Fixed at start-up.', (1, 100_000), live=False,
              group=_G_FIXED),
     ParamSpec('managed', 'bool', False, MANAGED_DESCRIPTION, live=False, group=_G_FIXED),
+    ParamSpec(
+        'velocity_type', 'string', VELOCITY_TYPES[0],
+        'The velocity topic (a measured speed along the track, e.g. a GNSS Doppler; preset '
+        'rail only, the others do not subscribe it): twist_with_covariance (default: '
+        'geometry_msgs/TwistWithCovarianceStamped, speed twist.twist.linear.x [m/s], '
+        'variance twist.covariance[0]), twist (geometry_msgs/TwistStamped, twist.linear.x, '
+        'variance measurement_velocity_variance, which must then be > 0) or none (no '
+        'velocity subscription).' + _FIXED, choices=VELOCITY_TYPES, live=False,
+        group=_G_FIXED),
 )
 
 PARAMETERS_AT_INIT = (
@@ -148,7 +161,9 @@ PARAMETERS_LIVE = (
             '0 uses the message. ' + _LIVE, (0.0, BIG), 'm²', group=_G_LIVE),
     _double('measurement_velocity_variance', _CORE.measurement_velocity_variance,
             'Velocity measurement variance [m²/s²] overriding the message twist.covariance[0] '
-            '(presets measuring the velocity); 0 uses the message. ' + _LIVE, (0.0, BIG),
+            '(presets measuring the velocity, and the velocity topic); 0 uses the message. '
+            'With velocity_type twist (no covariance in the message) it is the variance, '
+            'and must be > 0. ' + _LIVE, (0.0, BIG),
             'm²/s²', group=_G_LIVE),
     _double('horizon_s', None,
             'How far ahead the prediction is [s] (0: the prediction is the estimate). '
@@ -269,6 +284,7 @@ class NodeOptions(NamedTuple):
     qos_reliability: str
     qos_depth: int
     managed: bool
+    velocity_type: str
 
 
 class EstimatorConfig(NamedTuple):
@@ -301,6 +317,10 @@ def estimator_config(values: Mapping[str, Any]) -> EstimatorConfig:
         raise ParameterError('stale_error_periods ({:g}) must be at least stale_warn_periods '
                              '({:g})'.format(values['stale_error_periods'],
                                              values['stale_warn_periods']))
+    if values['velocity_type'] == 'twist' and settings.measurement_velocity_variance <= 0.0 \
+            and is_rail(resolve_preset(settings.preset)):
+        raise ParameterError('measurement_velocity_variance must be > 0 with velocity_type '
+                             'twist: a TwistStamped carries no variance')
     return EstimatorConfig(settings, NodeOptions(**{name: values[name]
                                                     for name in NodeOptions._fields}), values)
 

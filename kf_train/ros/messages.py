@@ -27,11 +27,12 @@ The only module that knows message layouts. Conventions (REP 103/105):
   geometry_msgs/TwistStamped ``twist.linear.x`` [m/s]; every other field 0, frame the
   body frame (``child_frame_id``, x along the track). Stamped t_k, a control is the
   input applied over the interval (t_{k-1}, t_k] that ends at its stamp.
-* A measured speed with its variance (topic ``velocity``, a GNSS receiver's Doppler
-  speed, as the u-blox and NMEA drivers publish it): geometry_msgs/
-  TwistWithCovarianceStamped, ``twist.twist.linear.x`` [m/s] in the body frame
-  (x along the track), variance ``twist.covariance[0]`` [m²/s²], the other diagonal
-  entries :data:`UNESTIMATED_VARIANCE` (:func:`to_velocity_msg`).
+* A measured speed (topic ``velocity``, a GNSS receiver's Doppler speed, as the u-blox
+  and NMEA drivers publish it; the simulator sends it, the rail preset fuses it):
+  geometry_msgs/TwistWithCovarianceStamped, ``twist.twist.linear.x`` [m/s] in the body
+  frame (x along the track), variance ``twist.covariance[0]`` [m²/s²], the other
+  diagonal entries :data:`UNESTIMATED_VARIANCE` (:func:`to_velocity_msg`), or
+  geometry_msgs/TwistStamped ``twist.linear.x`` (:func:`from_velocity_msg`).
 * A state of one component (the robot's position) goes out as an Odometry whose
   twist is not estimated: ``twist.twist.linear.x`` 0 with variance
   :data:`UNESTIMATED_VARIANCE`.
@@ -41,6 +42,7 @@ The only module that knows message layouts. Conventions (REP 103/105):
   ``twist.covariance[0]`` (:func:`to_odometry_msg`, :func:`from_odometry_msg`).
 """
 
+import math
 import struct
 from typing import List, NamedTuple, Sequence, Tuple
 
@@ -342,6 +344,30 @@ def to_velocity_msg(stamp_ns: int, frame_id: str, speed_mps: float,
     msg.twist.twist.linear.x = float(speed_mps)
     msg.twist.covariance = covariance_6x6(variance_m2_s2)
     return msg
+
+
+class Velocity(NamedTuple):
+    """A measured speed along the track as the estimator fuses it (topic ``velocity``)."""
+
+    stamp_ns: int
+    frame_id: str
+    velocity_mps: float
+    variance_m2s2: float
+    """``twist.covariance[0]``; NaN for a TwistStamped (the node's parameter gives it)."""
+
+
+def from_velocity_msg(msg) -> Velocity:
+    """Return the speed of a TwistWithCovarianceStamped (with its variance) or TwistStamped."""
+    if type(msg) is TwistStamped:
+        return Velocity(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                        float(msg.twist.linear.x), math.nan)
+    return Velocity(stamp_to_ns(msg.header.stamp), msg.header.frame_id,
+                    float(msg.twist.twist.linear.x), float(msg.twist.covariance[0]))
+
+
+VELOCITY_MESSAGES = {'twist_with_covariance': TwistWithCovarianceStamped,
+                     'twist': TwistStamped}
+"""The estimator's ``velocity_type`` -> the message type of its ``velocity`` topic."""
 
 
 CONTROL_MESSAGES = {'acceleration': (AccelStamped, to_accel_msg, from_accel_msg),

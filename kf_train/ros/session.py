@@ -76,12 +76,16 @@ class EstimatorSession:
         self.estimator = StreamEstimator(config.settings)
         self.preset = self.estimator.preset
         self.measures_velocity = self.preset.measurement_names == ('position', 'velocity')
+        self.fuses_velocity = (self.estimator.fuses_velocity
+                               and config.options.velocity_type != 'none')
+        """Whether the node subscribes ``velocity`` (rail, velocity_type not none)."""
         self._monotonic_s = monotonic_s
         self._log = log
         self.received = self.fused = self.rejected = 0
         self.corrections = 0
         """Estimates republished because a late control changed them."""
         self.controls_received = self.controls_rejected = 0
+        self.velocities_received = self.velocities_fused = self.velocities_rejected = 0
         self.set_state_refused = 0
         self.innovations = 0
         self.nis = collections.deque(maxlen=config.options.nis_window)
@@ -169,6 +173,32 @@ class EstimatorSession:
     def _node_variances(self, message_variances) -> tuple:
         """Return the variances of the estimator's R for a message's (the one override rule)."""
         return tuple(self.estimator.measurement_noise(*message_variances).diagonal().tolist())
+
+    def on_velocity(self, velocity, now_ns: int) -> Outputs:
+        """
+        Fuse one measured speed (``stamp_ns``, ``velocity_mps``, ``variance_m2s2``).
+
+        The variance is the message's (``measurement_velocity_variance`` overrides it
+        when > 0), or that parameter for a TwistStamped (``velocity_type`` twist). The
+        estimate it corrects is published; its innovation is not (``innovation`` is the
+        position's), nor does it enter the NIS window.
+        """
+        self.velocities_received += 1
+        now_ns = self.check_clock(now_ns)
+        variance = velocity.variance_m2s2
+        if self.config.options.velocity_type == 'twist':
+            variance = self.config.settings.measurement_velocity_variance
+        try:
+            step = self.estimator.process_velocity(velocity.stamp_ns, velocity.velocity_mps,
+                                                   variance, now_ns=now_ns)
+        except Rejected as rejection:
+            self.velocities_rejected += 1
+            self._warn_rejection('velocity.' + rejection.reason, str(rejection), 'velocity')
+            return NOTHING
+        if not self._publishable(step):
+            return NOTHING
+        self.velocities_fused += 1
+        return Outputs(step)
 
     def on_control(self, control, now_ns: int) -> Outputs:
         """Take one control (``stamp_ns``, ``value``); the corrected estimate if it changed."""

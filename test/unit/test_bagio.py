@@ -11,7 +11,7 @@ from kf_train.io import bagio
 from kf_train.io.bagio_layout import FieldReader, PatchTemplate
 from kf_train.io.bagio_output import ODOMETRY_FIELDS, odometry_message, OutputBag
 from kf_train.io.bagio_types import (
-    ACCEL, DIAGNOSTICS, ODOMETRY, POSE, TWIST, TYPESTORE, VECTOR3)
+    ACCEL, DIAGNOSTICS, ODOMETRY, POSE, TWIST, TWIST_COVARIANCE, TYPESTORE, VECTOR3)
 from kf_train.sim.simulation import TrainSimulation
 import numpy as np
 import pytest
@@ -435,3 +435,32 @@ def test_bag_modules_import_no_ros():
     result = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                             timeout=60, check=True)
     assert result.stdout.strip() == '[]'
+
+
+def speed_message(stamp_ns, speed_mps, variance):
+    """Return a TwistWithCovarianceStamped with a speed and its variance."""
+    twist = T['geometry_msgs/msg/Twist'](linear=vector3(speed_mps), angular=vector3())
+    return T[TWIST_COVARIANCE](
+        header=header(stamp_ns, 'base_link'), twist=T['geometry_msgs/msg/TwistWithCovariance'](
+            twist=twist, covariance=np.array(covariance_6x6(variance))))
+
+
+def test_speeds_are_read_from_their_topic_and_left_out_unless_asked(tmp_path):
+    """The velocity topic: its type read, by default the bag's /velocity if so typed."""
+    records = [('/measurement', POSE, 2, pose_message(1, 3.0, 1.0)),
+               ('/velocity', TWIST_COVARIANCE, 3, speed_message(1, 4.5, 0.04)),
+               ('/odom/speed', TWIST, 4, twist_message(1, 4.0))]
+    path = write_bag(tmp_path / 'bag', records)
+    read = read_all(path, velocity_type=TWIST_COVARIANCE)
+    assert read[1] == bagio.Velocity(3, 1, 'base_link', 4.5, 0.04) and len(read) == 2
+    assert len(read_all(path)) == 1                            # no speeds asked for
+    assert len(read_all(path, velocity_type=TWIST)) == 1       # /velocity has another type
+    twist = read_all(path, velocity_type=TWIST, velocity_topic='odom/speed')[1]
+    assert twist[:4] == (4, 1, 'base_link', 4.0) and math.isnan(twist.variance_m2s2)
+    for kwargs, words in (({'velocity_type': TWIST_COVARIANCE, 'velocity_topic': 'none'},
+                           'not in the bag'),
+                          ({'velocity_type': TWIST_COVARIANCE, 'velocity_topic': 'odom/speed'},
+                           'has type'),
+                          ({'velocity_topic': 'velocity'}, 'fuses no speed')):
+        with pytest.raises(ValueError, match=words):
+            read_all(path, **kwargs)
