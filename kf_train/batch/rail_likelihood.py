@@ -41,10 +41,11 @@ from typing import NamedTuple, Optional, Sequence
 
 from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
-    first_jump_row, hold_velocity, LOG_2PI, RailModel, RailModelParameters, RateTransition,
-    stop_probability)
-from kf_train.filters.rail_model import STAND, STOPPING
+    first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES, RailModel, RailModelParameters,
+    RateTransition, stop_probability, STOPPING)
 import numpy as np
+
+STAND = MODE_NAMES.index('stand')
 
 RAIL_NOISE_FIELDS = ('acceleration_noise', 'command_noise', 'capability_noise')
 """The RailModelParameters a :class:`RailNoise` varies (they only change Q)."""

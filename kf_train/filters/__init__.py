@@ -32,13 +32,13 @@ from kf_train.filters.models import (
     LinearModel, per_step_noise_terms, per_step_periods, per_step_weights, PerStepNoise,
     POSITION_H, ProcessNoise, white_noise_integrals, white_noise_terms,
     WhiteNoiseAcceleration)
+from kf_train.filters.noise_adaptation import NoiseAdaptation, NoiseScale
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
-from kf_train.filters.noise_adaptation import NoiseAdaptation, NoiseScale
 from kf_train.filters.rail_model import (
     hold_velocity, make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES,
-    stop_probability)
+    stop_probability, STOPPING)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
     RegularisedSnapshot, tempering_step)
@@ -74,7 +74,7 @@ __all__ = [
     'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
     'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
     'robust_cholesky', 'seconds_to_ns', 'seconds_to_ns_array', 'Snapshot', 'SquareRoot',
-    'STATE_NAMES', 'StepModel', 'stop_probability',
+    'STATE_NAMES', 'StepModel', 'stop_probability', 'STOPPING',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
     'unscented_predict', 'unscented_update', 'UnscentedModel', 'update', 'UpdateResult',
     'white_noise_integrals', 'white_noise_terms',

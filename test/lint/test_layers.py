@@ -151,6 +151,8 @@ def violations(package: Optional[str], source: str, exports: Dict[str, List[str]
 def _package_sources():
     """Yield (package or None, path, source, lazily loaded) of every module of kf_train."""
     for directory, _, files in sorted(os.walk(PACKAGE_DIR)):
+        if '__pycache__' in directory.split(os.sep):
+            continue  # bytecode a run outside the test suite left behind
         relative = os.path.relpath(directory, PACKAGE_DIR)
         package = None if relative == '.' else relative.split(os.sep)[0]
         lazy = []

@@ -169,14 +169,16 @@ def test_the_generic_paths_equal_the_rail_models_own(runs):
 
 
 def test_an_unreachable_mode_keeps_its_estimate():
-    # c̄_stand = 0 (no probability, brake -> stand impossible at speed): the stand
+    # c̄_stand = 0 (no probability, -> stand impossible at a sure speed): the stand
     # regime keeps its own estimate, and its probability stays exactly 0.
     model = RailModel()
     state = model.first_estimate(0.0)
     state = state._replace(probabilities=np.array([0.0, 0.5, 0.5, 0.0]))
     means = np.array(state.means)
     means[:, 1] = 20.0
-    state = state._replace(means=means)
+    covariances = np.array(state.covariances)
+    covariances[:, 1, :] = covariances[:, :, 1] = 0.0   # surely at 20 m/s: no slow regime
+    state = state._replace(means=means, covariances=covariances)
     predicted = model.predict(state, 0.1)
     assert predicted.probabilities[0] == 0.0
     assert np.all(np.isfinite(predicted.means)) and np.all(np.isfinite(predicted.covariances))
