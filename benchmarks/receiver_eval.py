@@ -13,7 +13,8 @@ Printed per run: the 2-s prediction RMSE against the truth and against the fix 2
 later, the 2σ coverage (truth), resets, the lowest velocity estimate and P(stand) on
 standing fixes. Scoring starts 10 s after the first fix and after a cold start.
 
-    .venv/bin/python benchmarks/receiver_eval.py [--seeds 0-5] [--duration 900]
+    .venv/bin/python benchmarks/receiver_eval.py [--seeds 0-5] [--duration 900] [--doppler]
+        [--warmup 10] [--no-anchors]
         [-p NAME=VALUE ...]   (RailModelParameters fields for the default's preset)
 """
 
@@ -36,7 +37,7 @@ R_GRID = (0.01, 0.03, 0.1, 0.3, 1.0, 3.0)
 
 
 def measured(run, seed: int):
-    """Return (t, z, variance, true position, true speed) of the receiver's fixes."""
+    """Return (t, z, variance, true position, true speed, Doppler, its variance) per fix."""
     receiver = GnssReceiver(GnssReceiverParameters(), np.random.default_rng(1000 + seed))
     rows = []
     for t in np.arange(0.0, run.parameters.duration_s, 1.0 / RATE_HZ):
@@ -44,19 +45,32 @@ def measured(run, seed: int):
         p, v = float(state.position_m[0]), float(state.velocity_mps[0])
         fix = receiver.fix(float(t), p, v)
         if fix.position_m is not None:
-            rows.append((t, fix.position_m, fix.h_acc_m ** 2, p, v))
+            rows.append((t, fix.position_m, fix.h_acc_m ** 2, p, v, fix.speed_mps,
+                         fix.speed_acc_mps ** 2))
     return tuple(np.array(column) for column in zip(*rows))
 
 
-def default_track(t, z, variance, settings: EstimatorSettings):
-    """Return (prediction mean, variance, P(stand), resets, min v) of the node's default."""
+def default_track(t, z, variance, settings: EstimatorSettings, speeds=None):
+    """
+    Return (prediction mean, variance, P(stand), resets, min v) of the node's default.
+
+    ``speeds`` (Doppler, its variance), when given, is fused after each position, as
+    the node fuses its ``velocity`` topic; the prediction is then the one after it.
+    """
     estimator = StreamEstimator(settings)
     mean, var, stand = (np.full(t.size, np.nan) for _ in range(3))
     last = None
     min_v = math.inf
     for k in range(t.size):
         try:
-            step = estimator.process(int(round(t[k] * NS)) + NS, float(z[k]), float(variance[k]))
+            stamp = int(round(t[k] * NS)) + NS
+            step = estimator.process(stamp, float(z[k]), float(variance[k]))
+            if speeds is not None:
+                try:
+                    step = estimator.process_velocity(stamp, float(speeds[0][k]),
+                                                      float(speeds[1][k]))
+                except Rejected:
+                    pass
             last = (step.predicted_x[0], step.predicted_P[0, 0])
             min_v = min(min_v, float(step.x[1]))
             stand[k] = estimator.mode_probabilities()[1][0]
@@ -131,6 +145,8 @@ def main() -> None:
     parser.add_argument('-p', action='append', default=[], metavar='NAME=VALUE')
     parser.add_argument('--warmup', type=float, default=10.0,
                         help='seconds after the first fix before scoring starts')
+    parser.add_argument('--doppler', action='store_true',
+                        help="fuse the receiver's Doppler speed too (speedAcc² its variance)")
     parser.add_argument('--no-anchors', action='store_true',
                         help='score the default only (the anchors take most of the time)')
     args = parser.parse_args()
@@ -146,12 +162,13 @@ def main() -> None:
             params = dataclasses.replace(family_parameters(family, seed),
                                          duration_s=args.duration)
             run = rail_run(params, seed)
-            t, z, variance, p, v = measured(run, seed)
+            t, z, variance, p, v, doppler, doppler_variance = measured(run, seed)
+            speeds = (doppler, doppler_variance) if args.doppler else None
 
             def truth_at(times, run=run):
                 return run.state_at(times).position_m
             scored = t >= t[0] + args.warmup
-            mean, var, stand, resets, min_v = default_track(t, z, variance, settings)
+            mean, var, stand, resets, min_v = default_track(t, z, variance, settings, speeds)
             ours = scores(t, mean, var, truth_at, z, scored)
             nan = ((math.nan,) * 3, 1.0, 1.0)
             ca = nan if args.no_anchors else best_anchor(3, CA_GRID, t, z, truth_at, scored)
