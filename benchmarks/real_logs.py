@@ -424,6 +424,8 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
         stats = run.session.estimator.stats()
         rejected = run.session.rejected
     resets = {reason: n for reason, n in stats.resets.items() if n}
+    if stats.reacquisitions:      # lock-outs that kept the track (lockout reacquire)
+        resets['reacquired'] = stats.reacquisitions
     too_large = sum('too large' in s.message for s in statuses)
     return {'mean': mean, 'variance': variance, 'velocity': velocity, 'p_stand': p_stand,
             'rejected': rejected,
@@ -512,11 +514,14 @@ def print_tables(results: List[dict]) -> None:
         rows.append((r['name'], r['artefacts']['class'], r['fixes'], f"{r['duration_s']:.0f} s",
                      f"{d['rmse_m']:.2f}", f"{cv['rmse_m']:.2f}", f"{ca['rmse_m']:.2f}",
                      f"{d['rmse_m'] / ca['rmse_m']:.2f}", f"{d['rmse_m'] / best:.2f}",
-                     f"{100 * d['coverage']:.1f} %", sum(d['resets'].values())))
+                     f"{100 * d['coverage']:.1f} %",
+                     sum(n for k, n in d['resets'].items() if k != 'reacquired'),
+                     d['resets'].get('reacquired', 0)))
     print('\n2-s prediction against the fix 2 s later, RMSE [m]. default: the node defaults, '
           f'R = {R_FIX_M2:g} m²; CV, CA: q and R tuned in hindsight on the log\n')
     print(format_table(('log', 'class', 'fixes', 'duration', 'default', 'CV', 'CA',
-                        'default/CA', 'default/best', 'default 2σ cov.', 'resets'), rows))
+                        'default/CA', 'default/best', 'default 2σ cov.', 'resets',
+                        'reacquired'), rows))
     rows = []
     for r in results:
         d, cv, ca, a = r['default'], r['CV'], r['CA'], r['artefacts']
@@ -532,7 +537,7 @@ def print_tables(results: List[dict]) -> None:
                      + (' edge' if ca['on_grid_edge'] else '')))
     print("\nThe default in detail; the tuned filters' 2σ coverage and tuning\n")
     print(format_table(('log', '|cross| median/p95 [m]', 'scored', 'rejected',
-                        'resets (reason)', 'min v [m/s]',
+                        'lock-outs (action)', 'min v [m/s]',
                         'dwell fixes: P(stand) median / < 0.5', "diagnostics 'too large'",
                         'CV cov. (q, R)', 'CA cov. (q, R)'), rows))
     rows = [(r['name'],) + tuple(f'{r["structure"][tau][0]:.3f}' for tau in TAUS_S)

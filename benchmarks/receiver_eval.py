@@ -21,6 +21,7 @@ standing fixes. Scoring starts 10 s after the first fix and after a cold start.
 import argparse
 import dataclasses
 import math
+import os
 
 from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
 from kf_train.sim.gnss_receiver import GnssReceiver, GnssReceiverParameters
@@ -150,9 +151,18 @@ def main() -> None:
     parser.add_argument('--no-anchors', action='store_true',
                         help='score the default only (the anchors take most of the time)')
     args = parser.parse_args()
+    preset = preset_with(args.p)
+    try:
+        table(args, EstimatorSettings(preset=preset))
+    finally:
+        if preset != 'rail':
+            os.unlink(preset)       # the temporary copy with the overrides
+
+
+def table(args: argparse.Namespace, settings: EstimatorSettings) -> None:
+    """Print the table of ``args``'s runs scored with ``settings``."""
     first, _, last = args.seeds.partition('-')
     seeds = range(int(first), int(last or first) + 1)
-    settings = EstimatorSettings(preset=preset_with(args.p))
     print('| run | default vs truth | CA vs truth | CV vs truth | default/best | default vs '
           'later fix | CA vs later fix | coverage | resets | min v | P(stand) median |')
     print('|---|---|---|---|---|---|---|---|---|---|---|')

@@ -129,6 +129,10 @@ class EstimatorStats(NamedTuple):
     velocity_rejections: Dict[str, int]
     """Speed measurements rejected, by reason (:data:`VELOCITY_REJECTION_REASONS`); they
     never count toward the positions' lock-out."""
+    reacquisitions: int = 0
+    """Lock-outs that kept the track (``lockout`` reacquire): the track widened by the
+    rejected group's disagreement and the group fused (its last fix counted as fused, the
+    others as rejected). A lock-out with ``lockout`` reset counts in ``resets``."""
 
 
 class Counters:
@@ -147,6 +151,7 @@ class Counters:
         self.velocity_rejections = dict.fromkeys(VELOCITY_REJECTION_REASONS, 0)
         self.velocities_fused = 0
         self.velocities_out_of_sequence = 0
+        self.reacquisitions = 0
 
     def snapshot(self, history_length: int, control_count: int) -> EstimatorStats:
         """Return the counts as an :class:`EstimatorStats` (copies of the dicts)."""
@@ -157,7 +162,7 @@ class Counters:
              'provisional': self.provisional}, history_length, control_count,
             {'fused': self.velocities_fused,
              'out_of_sequence': self.velocities_out_of_sequence},
-            dict(self.velocity_rejections))
+            dict(self.velocity_rejections), self.reacquisitions)
 
 
 def override_variance(override: float, message_variance: float) -> float:

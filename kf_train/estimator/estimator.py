@@ -104,11 +104,16 @@ Time handling:
 * ``restart_after_stale`` consecutive stale measurements mean the stream restarted
   (a bag loop, a restarted sensor): the filter resets and initialises from the last
   of them.
-* ``max_consecutive_outliers`` consecutive gate (or numerical) rejections reset the
-  filter; the next measurement initialises it, from the measurement itself as in
+* ``max_consecutive_outliers`` consecutive gate (or numerical) rejections that agree
+  with each other are a lock-out (:mod:`~kf_train.estimator.reacquire`). By default
+  (``lockout`` reacquire) the track is kept: widened by the jump between it and the
+  group's line, the group fused into it, never gated, the last fix's step returned
+  (``stats().reacquisitions``). With ``lockout`` reset, or when the lock-out came from
+  numerical failures, an out-of-sequence fix or with controls, the filter resets; the
+  next measurement initialises it with the group, from the measurements as in
   ``first_measurement`` mode even in ``prior`` mode (the prior is what the data
-  contradicted). The initialising measurement is never gated, so the filter cannot
-  stay locked out. Other resets re-initialise in the configured mode. A clock jump
+  contradicted). Either way the filter cannot stay locked out. Other resets
+  re-initialise in the configured mode. A clock jump
   or a stream restart also forgets the controls (their stamps belong to the old
   time line).
 
@@ -202,10 +207,10 @@ class StreamEstimator:
         summing to 1). None for the other presets, and before the first measurement.
         """
         fusion = self._fusion
-        probabilities = getattr(self.model, 'mode_probabilities', None)
-        if probabilities is None or fusion.x is None:
+        if fusion.x is None:
             return None
-        return self.model.imm.mode_names, probabilities(fusion.x, fusion.P)
+        probabilities = self.model.mode_probabilities(fusion.x, fusion.P)
+        return None if probabilities is None else (self.model.mode_names, probabilities)
 
     def noise_scale(self) -> Optional[float]:
         """
@@ -216,10 +221,7 @@ class StreamEstimator:
         before the first measurement.
         """
         fusion = self._fusion
-        scale = getattr(self.model, 'noise_scale', None)
-        if scale is None or fusion.x is None:
-            return None
-        return scale(fusion.x, fusion.P)
+        return None if fusion.x is None else self.model.noise_scale(fusion.x, fusion.P)
 
     def predict_to(self, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
         """

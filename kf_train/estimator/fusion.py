@@ -18,10 +18,14 @@ from kf_train.estimator.contract import (
 from kf_train.estimator.controls import Controls, propagate, prune_controls
 from kf_train.estimator.history import (
     Entry, History, initial_state, replay, replay_control, rewind_point)
-from kf_train.estimator.reacquire import consistent_group
+from kf_train.estimator.reacquire import consistent_group, fit_line, jump_covariance
 from kf_train.estimator.settings import Configuration
 from kf_train.filters import NS_PER_S, UpdateResult
 import numpy as np
+
+
+class _Reacquire(Exception):
+    """A lock-out that keeps the track: raised by the gate, caught by the in-order fusion."""
 
 
 class Fusion:
@@ -199,15 +203,17 @@ class Fusion:
         raise Rejected(reason, message)
 
     def _reject_update(self, reason: str, message: str,
-                       update: Optional[UpdateResult] = None, fix: Optional[tuple] = None
-                       ) -> None:
+                       update: Optional[UpdateResult] = None, fix: Optional[tuple] = None,
+                       in_order: bool = False) -> None:
         """
-        Reject an outlier or a numerical failure; enough in a row reset the filter.
+        Reject an outlier or a numerical failure; enough in a row make a lock-out.
 
-        ``fix`` (stamp, z, R) is the rejected measurement. The reset needs the last
+        ``fix`` (stamp, z, R) is the rejected measurement. The lock-out needs the last
         ``max_consecutive_outliers`` rejected fixes to be one consistent group
         (:func:`~kf_train.estimator.reacquire.consistent_group`): scattered gross
-        fixes are rejected and the track coasts on; a group restarts it, all of it.
+        fixes are rejected and the track coasts on. A group of outliers, the last one
+        in order, re-acquires the track (``lockout`` reacquire: raises _Reacquire for
+        :meth:`_fuse_in_order`); otherwise the track is reset and restarts from the group.
         """
         self.consecutive_outliers += 1
         needed = self.config.settings.max_consecutive_outliers
@@ -215,6 +221,9 @@ class Fusion:
             self.rejected = (self.rejected + [fix])[-needed:]
         reset = None
         if self.consecutive_outliers >= needed and self._group_agrees():
+            if (in_order and reason == 'outlier' and len(self.rejected) >= 2
+                    and self.controls is None and self.config.settings.lockout == 'reacquire'):
+                raise _Reacquire()
             reset = 'outlier_lockout'
             message += (f'; {self.consecutive_outliers} consecutive rejections that agree '
                         'with each other: filter reset, the next measurement initialises '
@@ -229,6 +238,49 @@ class Fusion:
                                 [float(z[0]) for _, z, _ in group],
                                 [float(R[0, 0]) for _, _, R in group],
                                 self.config.settings.gate_probability)
+
+    def _reacquire(self) -> EstimateStep:
+        """
+        Keep the track through a lock-out: widen it by the group's jump, fuse the group.
+
+        The rejected fixes (the last one is this measurement) agree on a line; the track
+        at the last fused stamp is widened by the jump between its prediction and that
+        line (:func:`~kf_train.estimator.reacquire.jump_covariance`), then each fix is
+        fused in order, never gated. Nothing rewinds past the widening (it is kept as a
+        'reinit' entry). Should that fail numerically, the track is reset instead.
+        """
+        group = sorted(self.rejected, key=lambda fix: fix[0])
+        anchor_ns, model = self.last_stamp_ns, self.config.model
+        stamps = [stamp for stamp, _, _ in group]
+        try:
+            line = fit_line(stamps, [float(z[0]) for _, z, _ in group],
+                            [float(R[0, 0]) for _, _, R in group])
+            predicted_x, _ = model.predict_ahead(self.x, self.P,
+                                                 (stamps[-1] - anchor_ns) / NS_PER_S)
+            jump = jump_covariance(model.state_names, predicted_x, line)
+            if jump is None or not np.all(np.isfinite(jump)):
+                raise FloatingPointError('no finite jump between the track and the group')
+            widened = x, P = model.widen(self.x, self.P, jump)
+            fused = []
+            for stamp_ns, z, R in group:
+                x, P, result = model.predict_update(x, P, (stamp_ns - anchor_ns) / NS_PER_S,
+                                                    z, R)
+                fused.append((stamp_ns, z, R, x, P, result))
+                anchor_ns = stamp_ns
+            predicted = self._predict_ahead(x, P)
+        except NUMERICAL_ERRORS as error:
+            self.reset('outlier_lockout')
+            self._reject('numerical', f're-acquisition failed ({error}): filter reset, the '
+                         'next measurement initialises it with the rejected fixes',
+                         'outlier_lockout')
+        self.history.clear()
+        self.history.commit(Entry(self.last_stamp_ns, None, None, model, *widened, 'reinit'))
+        for stamp_ns, z, R, x, P, result in fused:
+            self._commit(stamp_ns, x, P, 'update', z, R)
+        # The group's earlier fixes stay counted as rejected; this one is fused.
+        self.counters.fused -= len(fused) - 1
+        self.counters.reacquisitions += 1
+        return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
 
     def _late_control(self, stamp_ns: int, u: np.ndarray) -> Optional[EstimateStep]:
         """Keep a control for fused intervals: rewind to before it and replay."""
@@ -323,13 +375,17 @@ class Fusion:
 
     def _fuse_in_order(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
         """Predict from the newest state to the stamp, gate, update, commit."""
-        x, P, result, predicted, exact = self._gated_update(
-            self.x, self.P, self.last_stamp_ns, stamp_ns, z, R)
+        try:
+            x, P, result, predicted, exact = self._gated_update(
+                self.x, self.P, self.last_stamp_ns, stamp_ns, z, R, in_order=True)
+        except _Reacquire:
+            return self._reacquire()
         self._commit(stamp_ns, x, P, 'update', z, R)
         self.counters.provisional += not exact
         return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
 
-    def _gated_update(self, x0, P0, t_a: int, t_b: int, z: np.ndarray, R: np.ndarray):
+    def _gated_update(self, x0, P0, t_a: int, t_b: int, z: np.ndarray, R: np.ndarray,
+                      in_order: bool = False):
         """Return (x, P, result, prediction ahead, exact) or reject as outlier/numerical."""
         model = self.config.model
         try:
@@ -349,7 +405,8 @@ class Fusion:
             self._reject_update('outlier', (
                 f'NIS {nis:.6g} exceeds the gate {threshold:.6g} '
                 f'(gate_probability {self.config.settings.gate_probability}); innovation '
-                f'{np.array2string(result.innovation, precision=6)}'), result, (t_b, z, R))
+                f'{np.array2string(result.innovation, precision=6)}'), result, (t_b, z, R),
+                in_order)
         try:
             predicted = self._predict_ahead(x, P, u)
         except NUMERICAL_ERRORS as error:

@@ -18,7 +18,7 @@ Its :meth:`IMMModel.predict_update` is the IMM's fused step, not predict then up
 from typing import Dict, Optional, Tuple
 import weakref
 
-from kf_train.filters import IMM, IMMState, UpdateResult
+from kf_train.filters import IMM, IMMState, make_state, UpdateResult
 import numpy as np
 
 
@@ -36,6 +36,7 @@ class IMMModel:
         :meth:`measuring`.
         """
         self.imm = imm
+        self.mode_names = tuple(imm.mode_names)
         self.H = np.array(H, dtype=float)
         self.R = np.array(R, dtype=float)
         self.state_names = tuple(state_names)
@@ -107,6 +108,14 @@ class IMMModel:
         state, result = self._update(self.imm.predict(self.state_of(x, P), dt_s), z, R)
         x, P = self._keep(state)
         return x, P, result
+
+    def widen(self, x, P, jump) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the state behind x with ``jump`` added to every mode's covariance."""
+        state = self.state_of(x, P)
+        # Probabilities and the learned noise scale are kept: only the motion jumped. A
+        # mode whose dynamics pin a state (stand: v = 0) sets it again at its next step.
+        return self._keep(make_state(state.means, state.covariances + jump,
+                                     state.probabilities, state.noise))
 
     def mode_probabilities(self, x, P) -> np.ndarray:
         """Return the mode probabilities behind x (the initial ones if none)."""

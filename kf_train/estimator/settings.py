@@ -50,6 +50,8 @@ GATE_PROBABILITY_RANGE = (0.5, 1.0)
 HISTORY_S_RANGE = (0.0, 60.0)
 MAX_CONSECUTIVE_OUTLIERS_RANGE = (1, 1_000_000)
 RESTART_AFTER_STALE_RANGE = (2, 1_000_000)
+LOCKOUT_ACTIONS = ('reacquire', 'reset')
+"""What a lock-out does: keep the track, widened, or forget it (EstimatorSettings.lockout)."""
 MAX_FUTURE_S_RANGE = (0.0, 1e9)
 UKF_ALPHA_RANGE = (1e-4, 10.0)
 UKF_BETA_RANGE = (0.0, 100.0)
@@ -117,7 +119,11 @@ class EstimatorSettings:
     gate_probability: float = DEFAULT_GATE_PROBABILITY
     """χ² gate on the NIS: reject when P(χ²(m) <= NIS) exceeds this; 1 = no gate."""
     max_consecutive_outliers: int = 10
-    """Consecutive gate (or numerical) rejections after which the filter resets."""
+    """Consecutive gate (or numerical) rejections that make a lock-out (see ``lockout``)."""
+    lockout: str = 'reacquire'
+    """What a lock-out does (:data:`LOCKOUT_ACTIONS`): ``reacquire`` keeps the track,
+    widened by the rejected group's disagreement, and fuses the group; ``reset`` forgets
+    it and initialises from the group (kf_train.estimator.reacquire)."""
     restart_after_stale: int = 3
     """Consecutive stale measurements after which the stream counts as restarted."""
     max_future_s: float = 1.0
@@ -209,6 +215,8 @@ class EstimatorSettings:
                          *MAX_CONSECUTIVE_OUTLIERS_RANGE)
         _check_int_range('restart_after_stale', self.restart_after_stale,
                          *RESTART_AFTER_STALE_RANGE)
+        if self.lockout not in LOCKOUT_ACTIONS:
+            raise ValueError(f'lockout must be one of {LOCKOUT_ACTIONS}, got {self.lockout!r}')
         if not isinstance(self.expected_frame_id, str):
             raise ValueError(
                 f'expected_frame_id must be a string, got {self.expected_frame_id!r}')
@@ -295,7 +303,6 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
 
 def _velocity_model(model: StepModel) -> Optional[StepModel]:
     """Return ``model`` measuring its velocity state alone, if it can (the rail IMM)."""
-    measuring = getattr(model, 'measuring', None)
-    if measuring is None or 'velocity' not in model.state_names:
+    if 'velocity' not in model.state_names:
         return None
-    return measuring(model.state_names.index('velocity'))
+    return model.measuring(model.state_names.index('velocity'))

@@ -18,8 +18,15 @@ checked statically; ``isinstance(model, StepModel)`` checks the names at run tim
   measurement of a preset without controls with it;
 * ``predict_ahead(x, P, dt_s, u=None) -> (x, P)``: the look-ahead the estimator
   publishes; it never changes anything a later step reads;
+* ``widen(x, P, jump) -> (x, P)``: the state with a jump of covariance ``jump`` the
+  track missed (a lock-out that keeps the track, :mod:`kf_train.estimator.reacquire`);
 * ``state_names``, ``measurement_names``, ``control_names``, ``dim_x``, ``dim_z``:
-  the shape of x, z and u.
+  the shape of x, z and u;
+* what a model with more than one state behind (x, P) can tell, None (or ()) for the
+  others: ``mode_names`` and ``mode_probabilities(x, P)`` (a multiple-model filter's
+  regimes), ``noise_scale(x, P)`` (a learned scale on R), ``measuring(index)`` (the
+  same model measuring state ``index`` directly: a second sensor, the rail IMM's
+  speed).
 
 Every model the estimator runs implements it: the linear KF and the EKF
 (:class:`~kf_train.filters.models.LinearDynamicsModel`), the UKF
@@ -46,6 +53,7 @@ class StepModel(Protocol):
     control_names: Tuple[str, ...]
     dim_x: int
     dim_z: int
+    mode_names: Tuple[str, ...]
 
     def predict(self, x: np.ndarray, P: np.ndarray, dt_s: float, u=None
                 ) -> Tuple[np.ndarray, np.ndarray]:
@@ -64,9 +72,25 @@ class StepModel(Protocol):
                       ) -> Tuple[np.ndarray, np.ndarray]:
         """Return (x, P) dt_s ahead, changing nothing a later step reads."""
 
+    def widen(self, x: np.ndarray, P: np.ndarray, jump: np.ndarray
+              ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the state (x, P + jump): a jump of covariance ``jump`` the track missed."""
+
+    def mode_probabilities(self, x: np.ndarray, P: np.ndarray) -> Optional[np.ndarray]:
+        """Return the probabilities of ``mode_names`` behind (x, P), or None (one model)."""
+
+    def noise_scale(self, x: np.ndarray, P: np.ndarray) -> Optional[float]:
+        """Return the learned scale on R behind (x, P), or None (R as given)."""
+
+    def measuring(self, index: int) -> Optional['StepModel']:
+        """Return the model measuring state ``index`` directly, or None if it cannot."""
+
 
 class PredictThenUpdate:
     """The steps of a model without a fused step, built from its predict and update."""
+
+    mode_names: Tuple[str, ...] = ()
+    """One model: no regimes."""
 
     def predict_update(self, x, P, dt_s: float, z, R=None):
         """Return ``update(*predict(x, P, dt_s), z, R)``: the same numbers, one call."""
@@ -76,3 +100,19 @@ class PredictThenUpdate:
     def predict_ahead(self, x, P, dt_s: float, u=None):
         """Return ``predict(x, P, dt_s, u)`` (pure: nothing is kept)."""
         return self.predict(x, P, dt_s, u)
+
+    def widen(self, x, P, jump):
+        """Return (a new x, P + jump): a state of its own, however the model keeps them."""
+        return np.array(x, dtype=float), P + jump
+
+    def mode_probabilities(self, x, P) -> None:
+        """Return None: one model, no regimes."""
+        return None
+
+    def noise_scale(self, x, P) -> None:
+        """Return None: R is used as given."""
+        return None
+
+    def measuring(self, index: int) -> None:
+        """Return None: no second sensor of a single state."""
+        return None

@@ -187,8 +187,7 @@ def _filter_values(estimator) -> List[Tuple[str, str]]:
 
 def regime_names(estimator) -> Tuple[str, ...]:
     """Return the regimes of the estimator's model (the rail preset's IMM), else ()."""
-    imm = getattr(estimator.model, 'imm', None)
-    return tuple(imm.mode_names) if imm is not None else ()
+    return estimator.model.mode_names
 
 
 def regime_values(estimator) -> List[Tuple[str, str]]:

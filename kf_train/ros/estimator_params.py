@@ -15,7 +15,7 @@ from typing import Any, Dict, Iterable, Mapping, NamedTuple, Sequence, Union
 
 from kf_train.estimator import (
     DEFAULT_PRESET, EstimatorSettings, GATE_PROBABILITY_RANGE, HISTORY_S_RANGE, INITIALIZATIONS,
-    is_rail, LIVE_PRESETS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE,
+    is_rail, LIVE_PRESETS, LOCKOUT_ACTIONS, MAX_CONSECUTIVE_OUTLIERS_RANGE, MAX_FUTURE_S_RANGE,
     PF_PARTICLES_RANGE, PF_RESAMPLE_THRESHOLD_RANGE, PF_SEED_RANGE, preset_defaults,
     resolve_preset, RESTART_AFTER_STALE_RANGE, UKF_ALPHA_RANGE, UKF_BETA_RANGE,
     UKF_KAPPA_RANGE)
@@ -187,9 +187,19 @@ PARAMETERS_LIVE = (
             'gate_probability:=1.0) needs to reproduce seed 000 on any data. ' + _LIVE,
             GATE_PROBABILITY_RANGE, group=_G_LIVE),
     _integer('max_consecutive_outliers', _CORE.max_consecutive_outliers,
-             'After this many gate (or numerical) rejections in a row the filter resets and '
-             'the next measurement initialises it. ' + _LIVE, MAX_CONSECUTIVE_OUTLIERS_RANGE,
-             group=_G_LIVE),
+             'After this many gate (or numerical) rejections in a row that agree with each '
+             'other (a line fits them) comes a lock-out (see lockout). ' + _LIVE,
+             MAX_CONSECUTIVE_OUTLIERS_RANGE, group=_G_LIVE),
+    ParamSpec(
+        'lockout', 'string', _CORE.lockout,
+        'What a lock-out does: reacquire (default: the track is kept, widened by the jump '
+        'between it and the line through the rejected fixes, and those fixes fused: a run '
+        'stays one track through gaps, cold starts and receiver artefacts; counted as '
+        'reacquisitions) '
+        'or reset (the filter forgets the track and the next measurement initialises it '
+        'with the rejected fixes; counted in resets). A lock-out from numerical failures, '
+        'out-of-sequence fixes or with controls always resets. ' + _LIVE,
+        choices=LOCKOUT_ACTIONS, group=_G_LIVE),
     _integer('restart_after_stale', _CORE.restart_after_stale,
              'After this many stale measurements in a row the stream counts as restarted: '
              'the filter resets and initialises from the last one. ' + _LIVE,

@@ -142,7 +142,8 @@ def test_a_huge_outlier_is_gated_counted_and_changes_nothing(metro):
 
 def test_consecutive_outliers_reset_and_the_next_measurement_reinitialises(metro):
     stamps, zs, _ = metro
-    estimator = StreamEstimator(dataclasses.replace(RAIL, max_consecutive_outliers=3))
+    estimator = StreamEstimator(dataclasses.replace(RAIL, max_consecutive_outliers=3,
+                                                    lockout='reset'))
     _feed(estimator, stamps[:50], zs[:50])
     for k in range(50, 53):
         with pytest.raises(Rejected):

@@ -4,10 +4,12 @@ import dataclasses
 
 from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
 from kf_train.estimator.reacquire import consistent_group
+import numpy as np
 import pytest
 
 NS = 1_000_000_000
 RAIL = EstimatorSettings(max_consecutive_outliers=5)
+RESET = dataclasses.replace(RAIL, lockout='reset')
 
 
 def _stamps(count: int, start: int = 0):
@@ -44,7 +46,7 @@ def test_scattered_gross_fixes_never_restart_the_track():
 
 
 def test_a_consistent_group_restarts_the_track_from_all_of_its_fixes():
-    estimator = StreamEstimator(RAIL)
+    estimator = StreamEstimator(RESET)
     _cruising(estimator, 200)
     # The train is really 500 m further on (a missed jump of the map, a restarted
     # receiver): five fixes in a row agree with each other, and restart the track.
@@ -60,7 +62,7 @@ def test_a_consistent_group_restarts_the_track_from_all_of_its_fixes():
 
 
 def test_the_group_restart_is_what_in_order_fusion_of_the_group_gives():
-    settings = dataclasses.replace(RAIL, history_s=0.0)
+    settings = dataclasses.replace(RESET, history_s=0.0)
     estimator = StreamEstimator(settings)
     _cruising(estimator, 100)
     moved = [900.0 + 1.0 * k for k in range(100, 106)]
@@ -73,3 +75,70 @@ def test_the_group_restart_is_what_in_order_fusion_of_the_group_gives():
     for k in range(6):
         expected = fresh.process(_stamps(1, 100 + k)[0], moved[k], 1.0)
     assert (step.x == expected.x).all() and (step.P == expected.P).all()
+
+
+def test_a_consistent_group_reacquires_the_track_and_keeps_what_it_learned():
+    """The default lock-out keeps the track: widened by the jump, the group fused into it."""
+    estimator = StreamEstimator(RAIL)
+    _cruising(estimator, 200)
+    scale = estimator.noise_scale()
+    moved = [500.0 + 1.0 * k for k in range(200, 206)]
+    for k in range(4):
+        with pytest.raises(Rejected) as raised:
+            estimator.process(_stamps(1, 200 + k)[0], moved[k], 1.0)
+        assert raised.value.reset is None
+    step = estimator.process(_stamps(1, 204)[0], moved[4], 1.0)    # the fifth: fused
+    stats = estimator.stats()
+    assert stats.reacquisitions == 1 and sum(stats.resets.values()) == 0
+    assert stats.rejections['outlier'] == 4 and stats.fused == 201
+    # On the group's line: 500 m further, still 10 m/s (the track's and the group's).
+    assert step.x[0] == pytest.approx(moved[4], abs=1.0)
+    assert step.x[1] == pytest.approx(10.0, abs=1.0)
+    assert np.all(np.isfinite(step.P)) and np.all(np.linalg.eigvalsh(step.P) > -1e-9)
+    # Kept, not restarted: the regime probabilities are a distribution and the noise
+    # scale learned before is the one that went on learning (not reset to 1).
+    probabilities = estimator.mode_probabilities()[1]
+    assert probabilities.sum() == pytest.approx(1.0) and probabilities[2] > 0.5   # cruise
+    assert scale < 0.5 and estimator.noise_scale() < 1.0
+    step = estimator.process(_stamps(1, 205)[0], moved[5], 1.0)      # gated, accepted
+    assert step.update is not None and step.update.nis < 15.1
+
+
+def test_reacquisition_is_the_widened_track_fused_with_the_group():
+    """The re-acquired state is StepModel.widen by the jump, then the group in order."""
+    from kf_train.estimator.reacquire import fit_line, jump_covariance
+    settings = dataclasses.replace(RAIL, history_s=0.0)
+    estimator = StreamEstimator(settings)
+    _cruising(estimator, 100)
+    # The fused arrays themselves: the IMM's regime states are kept under them.
+    x0, P0 = estimator._fusion.x, estimator._fusion.P
+    model = estimator.model
+    moved = [900.0 + 1.0 * k for k in range(100, 105)]
+    stamps = _stamps(5, 100)
+    for k in range(4):
+        with pytest.raises(Rejected):
+            estimator.process(stamps[k], moved[k], 1.0)
+    step = estimator.process(stamps[4], moved[4], 1.0)
+    anchor = _stamps(1, 99)[0]
+    line = fit_line(stamps, moved, [1.0] * 5)
+    predicted, _ = model.predict_ahead(x0, P0, (stamps[-1] - anchor) / NS)
+    x, P = model.widen(x0, P0, jump_covariance(model.state_names, predicted, line))
+    for stamp, z in zip(stamps, moved):
+        x, P, _ = model.predict_update(x, P, (stamp - anchor) / NS, np.array([z]),
+                                       np.array([[1.0]]))
+        anchor = stamp
+    np.testing.assert_allclose(step.x, x, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(step.P, P, rtol=1e-9, atol=1e-9)
+
+
+def test_the_jump_covers_the_disagreement_and_nothing_else():
+    from kf_train.estimator.reacquire import fit_line, jump_covariance
+    line = fit_line(_stamps(3), [10.0, 11.0, 12.0], [1.0] * 3)
+    assert line.position_m == pytest.approx(12.0) and line.velocity_mps == pytest.approx(10.0)
+    assert line.chi2 == pytest.approx(0.0, abs=1e-18)
+    jump = jump_covariance(('position', 'velocity', 'acceleration'),
+                           np.array([2.0, 4.0, 1.0]), line)
+    assert jump[0, 0] == pytest.approx(100.0 + line.covariance[0, 0])
+    assert jump[1, 1] == pytest.approx(36.0 + line.covariance[1, 1])
+    assert np.count_nonzero(jump) == 2
+    assert jump_covariance(('x', 'y'), np.zeros(2), line) is None

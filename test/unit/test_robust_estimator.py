@@ -229,9 +229,10 @@ def test_a_single_stale_measurement_is_rejected_and_a_restarted_stream_is_follow
 
 @pytest.mark.parametrize('mode', ['first_measurement', 'prior'])
 def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
-    """A train that jumps 500 m is gated N times, then the filter re-initialises and follows."""
+    """With lockout reset, a 500-m jump is gated N times, then the filter re-initialises."""
     settings = dataclasses.replace(ROBUST, initialization=mode, max_consecutive_outliers=4,
-                                   process_noise_density=0.0, initial_state=(0.0, 10.0))
+                                   process_noise_density=0.0, initial_state=(0.0, 10.0),
+                                   lockout='reset')
     stamps, positions = _stream(40)
     estimator = _fed(settings, stamps[:20], positions[:20])
     jumped = [z + 500.0 for z in positions]
@@ -252,6 +253,52 @@ def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
     # re-initialises from the measurement, not from the prior the data contradicted.
     assert abs(step.x[0] - (500.0 + 10.0 * 0.1 * 40)) < 4.0 * math.sqrt(step.P[0, 0])
     assert estimator.stats().rejections['outlier'] == 4
+    assert estimator.stats().reacquisitions == 0
+
+
+@pytest.mark.parametrize('mode', ['first_measurement', 'prior'])
+def test_a_lockout_reacquires_the_track_by_default(mode):
+    """With lockout reacquire, the N-th agreeing outlier is fused with the group; no reset."""
+    settings = dataclasses.replace(ROBUST, initialization=mode, max_consecutive_outliers=4,
+                                   process_noise_density=0.0, initial_state=(0.0, 10.0))
+    assert settings.lockout == 'reacquire'
+    stamps, positions = _stream(40)
+    estimator = _fed(settings, stamps[:20], positions[:20])
+    jumped = [z + 500.0 for z in positions]
+    for k in range(20, 23):
+        with pytest.raises(Rejected) as raised:
+            estimator.process(stamps[k], jumped[k], 1.0)
+        assert raised.value.reason == 'outlier' and raised.value.reset is None
+    step = estimator.process(stamps[23], jumped[23], 1.0)     # the fourth: re-acquired
+    stats = estimator.stats()
+    assert estimator.initialized and step.reset is None
+    assert sum(stats.resets.values()) == 0 and stats.reacquisitions == 1
+    assert stats.rejections['outlier'] == 3 and stats.fused == 21
+    # The track now runs through the group: within a few σ of the jumped line, whose
+    # four fixes (σ = 1 m) pin it to about 1 m; the velocity is the line's, 10 m/s.
+    assert abs(step.x[0] - jumped[23]) < 4.0
+    assert abs(step.x[1] - 10.0) < 4.0 * math.sqrt(step.P[1, 1]) + 1.0
+    for k in range(24, 40):
+        step = estimator.process(stamps[k], jumped[k], 1.0)    # fused: back on the train
+    assert abs(step.x[0] - (500.0 + 10.0 * 0.1 * 40)) < 4.0 * math.sqrt(step.P[0, 0])
+    assert estimator.stats().rejections['outlier'] == 3
+    # Nothing rewinds past the widening: an older fix than it is stale.
+    with pytest.raises(Rejected) as raised:
+        estimator.process(stamps[19] + 1, jumped[19], 1.0)
+    assert raised.value.reason == 'stale_stamp'
+
+
+def test_scattered_outliers_never_reacquire():
+    """Gross fixes that no line fits are rejected however many; the track coasts on."""
+    settings = dataclasses.replace(ROBUST, max_consecutive_outliers=4)
+    stamps, positions = _stream(40)
+    estimator = _fed(settings, stamps[:20], positions[:20])
+    for k in range(20, 32):
+        with pytest.raises(Rejected):
+            estimator.process(stamps[k], positions[k] + (-1) ** k * 300.0, 1.0)
+    stats = estimator.stats()
+    assert stats.reacquisitions == 0 and sum(stats.resets.values()) == 0
+    assert estimator.initialized and stats.rejections['outlier'] == 12
 
 
 def test_gate_threshold_comes_from_the_chi2_quantile_and_changes_live():
