@@ -155,6 +155,7 @@ def _count_values(estimator, counts: NodeCounts) -> List[Tuple[str, str]]:
     resets = stats.resets
     values.append(('resets', str(sum(resets.values()))))
     values += [(f'resets.{reason}', str(count)) for reason, count in resets.items()]
+    values.append(('reacquisitions', str(stats.reacquisitions)))   # lock-outs, track kept
     values.append(('set_state_refused', str(counts.set_state_refused)))
     if estimator.has_control:
         values.append(('controls_received', str(counts.controls_received)))

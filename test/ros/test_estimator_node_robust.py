@@ -259,7 +259,7 @@ def test_diagnostics_report_rates_and_warn_once_on_timeout(ros_context, executor
     assert float(values['last_measurement_age_s']) < 0.5
     assert float(values['input_rate_hz']) >= 0.0
     expected_keys = {'input_rate_hz', 'fused_rate_hz', 'received', 'fused', 'rejected',
-                     'resets', 'fused_out_of_sequence', 'gate_probability',
+                     'resets', 'reacquisitions', 'fused_out_of_sequence', 'gate_probability',
                      'covariance_condition', 'nis_window_count', 'set_state_refused'}
     expected_keys |= {f'rejected.{r}' for r in REJECTION_REASONS}
     expected_keys |= {f'resets.{r}' for r in RESET_REASONS}

@@ -70,8 +70,9 @@ def _run(cls, settings: EstimatorSettings, events):
         except Rejected as rejection:
             outcomes.append((rejection.reason, rejection.reset,
                              None if rejection.update is None else rejection.update.nis))
-    counters = (estimator.stats().rejections, estimator.stats().resets, estimator.stats().fused,
-                estimator.stats().out_of_sequence)
+    stats = estimator.stats()
+    counters = (stats.rejections, stats.resets, stats.fused, stats.out_of_sequence,
+                stats.reacquisitions)
     return estimator, outcomes, counters
 
 
@@ -82,23 +83,28 @@ def _close(a, b, what):
     assert a.shape == b.shape and np.all(np.abs(a - b) <= 1e-9 * scale), (what, a, b)
 
 
-@pytest.mark.parametrize('q, initialization', [
-    (0.0, 'prior'), (0.0, 'first_measurement'), (0.5, 'first_measurement')])
-def test_fast_train_path_equals_the_generic_path(q, initialization):
+@pytest.mark.parametrize('q, initialization, lockout', [
+    (0.0, 'prior', 'reset'), (0.0, 'first_measurement', 'reacquire'),
+    (0.5, 'first_measurement', 'reset'), (0.5, 'first_measurement', 'reacquire')])
+def test_fast_train_path_equals_the_generic_path(q, initialization, lockout):
     """Closed form vs generic matrices: same steps, rejections and counters; 1e-9."""
     settings = EstimatorSettings(preset='train', history_s=1.0, gate_probability=0.999,
                                  max_consecutive_outliers=3, process_noise_density=q,
-                                 initialization=initialization)
+                                 initialization=initialization, lockout=lockout)
     events = _events(200, 1)
     fast, fast_out, fast_counts = _run(StreamEstimator, settings, events)
     generic, generic_out, generic_counts = _run(_GenericEstimator, settings, events)
     assert type(fast.model).__name__ == '_FastTrainModel'
     assert type(generic.model).__name__ != '_FastTrainModel'
     assert fast_counts == generic_counts
-    rejections, resets, _, oos = fast_counts
+    rejections, resets, _, oos, reacquisitions = fast_counts
     # The stream reaches every path it is meant to.
     assert oos > 0 and rejections['outlier'] > 0 and rejections['duplicate_stamp'] > 0
-    assert rejections['stale_stamp'] > 0 and resets['outlier_lockout'] > 0
+    assert rejections['stale_stamp'] > 0
+    if lockout == 'reset':
+        assert resets['outlier_lockout'] > 0 and reacquisitions == 0
+    else:
+        assert resets['outlier_lockout'] == 0 and reacquisitions > 0
     assert resets['set_state'] == 1
     for i, (a, b) in enumerate(zip(fast_out, generic_out)):
         if isinstance(a, tuple) and not hasattr(a, 'x'):
