@@ -39,7 +39,8 @@ def test_status_values_in_order():
         + [f'rejected.{reason}' for reason in REJECTION_REASONS] + ['resets']
         + [f'resets.{reason}' for reason in RESET_REASONS]
         + ['reacquisitions', 'set_state_refused', 'gate_probability', 'gate_threshold',
-           'nis_window_count', 'nis_window_mean', 'nis_lower_99', 'nis_upper_99', 'covariance_condition'])
+           'nis_window_count', 'nis_window_mean', 'nis_lower_99', 'nis_upper_99',
+           'covariance_condition'])
     values = dict(status.values)
     lower, upper = chi2_mean_bounds(2, 1, CONSISTENCY_CONFIDENCE)
     assert values['preset'] == 'train' and values['filter'] == 'kf'
