@@ -244,7 +244,9 @@ class EstimatorNode(Node):
         self._prediction_writer = messages.EstimateWriter(
             options.frame_id, options.child_frame_id, self.preset.dim_x)
         self._innovation_writer = messages.InnovationWriter(options.frame_id)
-        inputs = ['measurement'] + (['control'] if self.preset.control_names else [])
+        inputs = ['measurement'] + (['control'] if self.preset.control_names else []) + \
+            (['velocity'] if self.session.fuses_velocity else [])
+        self._inputs = inputs
         self.watch = InputWatch([self.resolve_topic_name(name) for name in inputs])
         self._withhold = False
         self._last_measurement = None
@@ -422,9 +424,10 @@ class EstimatorNode(Node):
         """Check the inputs for silence; log changes; withhold or widen a stale estimate."""
         options = self.config.options
         names = self.watch.topics
-        counts = {names[0]: self.session.received}
-        if len(names) > 1:
-            counts[names[1]] = self.session.controls_received
+        session = self.session
+        received = {'measurement': session.received, 'control': session.controls_received,
+                    'velocity': session.velocities_received}
+        counts = {name: received[kind] for name, kind in zip(names, self._inputs)}
         changes = self.watch.check(counts, time.monotonic(), self._expected_period_s(),
                                    options.stale_warn_periods, options.stale_error_periods)
         for _, level, line in changes:
@@ -433,9 +436,10 @@ class EstimatorNode(Node):
             else:
                 self.get_logger().warning(line)
         stale = self.watch.stale
-        # A stale control makes the estimate stale; a stale measurement makes none.
+        # A stale control makes the estimate stale; a stale measurement makes none, nor
+        # does a silent speed (the positions carry the track on without it).
         self._withhold = options.stale_output == 'stop' and any(
-            name != names[0] for name in stale)
+            name in stale for name, kind in zip(names, self._inputs) if kind == 'control')
         if names[0] in stale and options.stale_output == 'predict' and \
                 self.estimator.initialized:
             self._publish_prediction_to_now()

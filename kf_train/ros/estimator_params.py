@@ -235,9 +235,10 @@ PARAMETERS_NODE = (
              'it off; below 10 counts as 10. Presets without q (robot) never show it.',
              (0, 3000), group=_G_NODE),
     _double('expected_period_s', 0.0,
-            'Expected period of each input topic (measurement, and control for presets with '
-            "one) [s]; 0: the preset's nominal_period_s. Watched on the steady clock once the "
-            'topic has delivered a message.', (0.0, 3600.0), 's', group=_G_NODE),
+            'Expected period of each input topic (measurement; control for presets with one; '
+            "velocity for rail) [s]; 0: the preset's nominal_period_s. Watched on the steady "
+            'clock once the topic has delivered a message; a silent velocity never withholds '
+            'the estimate.', (0.0, 3600.0), 's', group=_G_NODE),
     _double('stale_warn_periods', 3.0,
             'After this many expected periods without a message on an input topic, '
             '/diagnostics (status <node>: inputs) goes to WARN naming the topic and its age.',

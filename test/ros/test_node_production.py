@@ -293,6 +293,42 @@ def test_stale_control_withholds_the_estimate_until_it_returns(ros_context, exec
     assert spin_until(executor, lambda: len(probe.estimates) >= 4)
 
 
+def test_a_silent_velocity_is_watched_but_never_withholds_the_estimate(ros_context, executor):
+    """The rail default's velocity topic goes stale like any input; positions go on."""
+    node = _start(executor, EstimatorNode(context=ros_context, parameter_overrides=_parameters(
+        {'expected_period_s': 0.05, 'stale_warn_periods': 1.0, 'stale_error_periods': 2.0})))
+    probe = Probe(ros_context, executor)
+    velocity_pub = probe.node.create_publisher(
+        messages.VELOCITY_MESSAGES['twist_with_covariance'], 'velocity', QoSProfile(depth=100))
+    assert spin_until(executor, lambda: probe.pub.get_subscription_count() == 1
+                      and velocity_pub.get_subscription_count() == 1)
+    assert node.watch.topics[-1].endswith('/velocity')
+
+    def send(with_velocity):
+        count, speeds = node.received, node.session.velocities_received
+        probe.send()
+        if with_velocity:
+            msg = messages.VELOCITY_MESSAGES['twist_with_covariance']()
+            msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(probe.stamp_ns, NS_PER_S)
+            msg.twist.twist.linear.x = 10.0
+            msg.twist.covariance[0] = 0.04
+            velocity_pub.publish(msg)
+        assert spin_until(executor, lambda: node.received == count + 1 and
+                          node.session.velocities_received == speeds + with_velocity)
+
+    for _ in range(3):
+        send(with_velocity=True)
+    assert spin_until(executor, lambda: len(probe.estimates) >= 3)
+    assert spin_until(executor, lambda: any(name.endswith('/velocity')
+                                            for name in node.watch.stale))
+    published = len(probe.estimates)
+    send(with_velocity=False)
+    assert spin_until(executor, lambda: len(probe.estimates) == published + 1)
+    send(with_velocity=True)
+    assert spin_until(executor, lambda: not any(name.endswith('/velocity')
+                                                for name in node.watch.stale))
+
+
 # -- the gate's reach -----------------------------------------------------------------------
 
 @pytest.mark.parametrize('preset', ['train', 'rail'])
