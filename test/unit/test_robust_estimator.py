@@ -227,12 +227,11 @@ def test_a_single_stale_measurement_is_rejected_and_a_restarted_stream_is_follow
     assert estimator.last_stamp_ns == restarted[2]
 
 
-@pytest.mark.parametrize('mode', ['first_measurement', 'prior'])
-def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
-    """With lockout reset, a 500-m jump is gated N times, then the filter re-initialises."""
+def _three_rejected_after_a_jump(mode: str, lockout: str):
+    """Return (estimator, stamps, positions): a train that jumped 500 m, 3 fixes gated."""
     settings = dataclasses.replace(ROBUST, initialization=mode, max_consecutive_outliers=4,
                                    process_noise_density=0.0, initial_state=(0.0, 10.0),
-                                   lockout='reset')
+                                   lockout=lockout)
     stamps, positions = _stream(40)
     estimator = _fed(settings, stamps[:20], positions[:20])
     jumped = [z + 500.0 for z in positions]
@@ -240,6 +239,13 @@ def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
         with pytest.raises(Rejected) as raised:
             estimator.process(stamps[k], jumped[k], 1.0)
         assert raised.value.reason == 'outlier' and raised.value.reset is None
+    return estimator, stamps, jumped
+
+
+@pytest.mark.parametrize('mode', ['first_measurement', 'prior'])
+def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
+    """With lockout reset, a 500-m jump is gated N times, then the filter re-initialises."""
+    estimator, stamps, jumped = _three_rejected_after_a_jump(mode, 'reset')
     with pytest.raises(Rejected) as raised:
         estimator.process(stamps[23], jumped[23], 1.0)
     assert raised.value.reset == 'outlier_lockout'
@@ -259,16 +265,8 @@ def test_consecutive_outliers_reinitialise_instead_of_locking_out(mode):
 @pytest.mark.parametrize('mode', ['first_measurement', 'prior'])
 def test_a_lockout_reacquires_the_track_by_default(mode):
     """With lockout reacquire, the N-th agreeing outlier is fused with the group; no reset."""
-    settings = dataclasses.replace(ROBUST, initialization=mode, max_consecutive_outliers=4,
-                                   process_noise_density=0.0, initial_state=(0.0, 10.0))
-    assert settings.lockout == 'reacquire'
-    stamps, positions = _stream(40)
-    estimator = _fed(settings, stamps[:20], positions[:20])
-    jumped = [z + 500.0 for z in positions]
-    for k in range(20, 23):
-        with pytest.raises(Rejected) as raised:
-            estimator.process(stamps[k], jumped[k], 1.0)
-        assert raised.value.reason == 'outlier' and raised.value.reset is None
+    assert EstimatorSettings().lockout == 'reacquire'
+    estimator, stamps, jumped = _three_rejected_after_a_jump(mode, 'reacquire')
     step = estimator.process(stamps[23], jumped[23], 1.0)     # the fourth: re-acquired
     stats = estimator.stats()
     assert estimator.initialized and step.reset is None
