@@ -8,7 +8,8 @@ what an input path names, checks an output path and writes a file atomically.
 
 The bag modules (``bagio``, ``bagio_output``, ``bagio_simulation``) need ``rosbags``
 (the extra ``[bag]``): they are imported when used (``from kf_train.io import bagio``),
-not here.
+not here. :mod:`~kf_train.io.track_geometry` and :mod:`~kf_train.io.track_fixes` (WGS 84
+fixes on a track file) need ``pyproj`` (the extra ``[track]``) once a geometry is built.
 """  # noqa: A005 (see below)
 
 # The name shadows the standard library's io only for code run with kf_train/ itself on
