@@ -1,10 +1,11 @@
 """
 WGS 84 fixes to along-track positions: the cross-track gate and the direction of travel.
 
-:class:`TrackFixes` takes fixes one at a time, in time order (latitude, longitude and
-either a horizontal east/north covariance or none), and returns the along-track
-measurements the estimator fuses (:class:`TrackFix`: x in metres, its variance). The
-same object serves the node and the offline replay, so both fuse the same numbers.
+:class:`TrackFixes` takes fixes one at a time, in time order (a tag such as the
+stamp, latitude, longitude and either a horizontal east/north covariance or none), and
+returns the along-track measurements the estimator fuses (:class:`TrackFix`: x in
+metres, its variance, the tag). The same object serves the node and the offline
+replay, so both fuse the same numbers.
 
 * A fix without a position (the receiver's no-fix status) is dropped and counted.
 * **Cross-track gate.** A fix farther from the track than
@@ -26,7 +27,7 @@ same object serves the node and the offline replay, so both fuse the same number
 """
 
 from dataclasses import dataclass
-from typing import List, Optional
+from typing import Any, List, Optional
 
 from kf_train.io.track_geometry import TrackGeometry
 import numpy as np
@@ -43,14 +44,15 @@ DIRECTION_FIXES = 5
 """How many fixes each median takes when deciding the direction (outlier-proof)."""
 PENDING_MAX = 3000
 """Most fixes held while the direction is open (the oldest are dropped past it)."""
-DIRECTIONS = ('auto', 'forward', 'reverse')
+TRACK_DIRECTIONS = ('auto', 'forward', 'reverse')
 
 
 @dataclass(frozen=True)
 class TrackFix:
-    """One fix on the track: along-track x [m], its variance [m²], and where it came from."""
+    """One fix on the track: along-track x [m], its variance [m²], its tag, cross-track [m]."""
 
-    t_s: float
+    tag: Any
+    """What the caller gave with the fix (its time, its frame...), carried through."""
     x_m: float
     variance_m2: float
     cross_m: float
@@ -77,8 +79,8 @@ class TrackFixes:
                  cross_track_sigmas: float = CROSS_TRACK_SIGMAS,
                  direction: str = 'auto', direction_min_m: float = DIRECTION_MIN_M) -> None:
         """Set the track, the default variance [m²] of a fix without covariance, and the gates."""
-        if direction not in DIRECTIONS:
-            raise ValueError(f'direction must be one of {DIRECTIONS}, got {direction!r}')
+        if direction not in TRACK_DIRECTIONS:
+            raise ValueError(f'direction must be one of {TRACK_DIRECTIONS}, got {direction!r}')
         if not variance_m2 > 0.0 or not cross_track_max_m >= 0.0 \
                 or not cross_track_sigmas >= 0.0 or not direction_min_m > 0.0:
             raise ValueError('variance_m2 and direction_min_m must be > 0, the cross-track '
@@ -101,10 +103,10 @@ class TrackFixes:
         return self.cross_track_max_m + self.cross_track_sigmas * float(
             np.sqrt(max(cross_variance_m2, 0.0)))
 
-    def add(self, t_s: float, lat_deg: float, lon_deg: float,
+    def add(self, tag: Any, lat_deg: float, lon_deg: float,
             covariance_en_m2: Optional[np.ndarray] = None, has_fix: bool = True
             ) -> List[TrackFix]:
-        """Take one fix; return the measurements it releases (none, one, or the held ones)."""
+        """Take one fix, tagged; return the measurements it releases (none, one, the held)."""
         counts = self.counts
         counts.fixes += 1
         if not has_fix or not (np.isfinite(lat_deg) and np.isfinite(lon_deg)):
@@ -123,7 +125,7 @@ class TrackFixes:
         if abs(cross_m[0]) > self.cross_track_bound_m(cross_variance_m2):
             counts.off_track += 1
             return []
-        fix = TrackFix(float(t_s), float(s_m[0]), variance_m2, float(cross_m[0]))
+        fix = TrackFix(tag, float(s_m[0]), variance_m2, float(cross_m[0]))
         if counts.direction == 'reverse':
             fix = self._reverse(fix)
         elif counts.direction == 'auto':
@@ -133,7 +135,7 @@ class TrackFixes:
 
     def _reverse(self, fix: TrackFix) -> TrackFix:
         """Return a fix on the track as drawn, re-measured from its far end."""
-        return TrackFix(fix.t_s, self.geometry.length_m - fix.x_m, fix.variance_m2, -fix.cross_m)
+        return TrackFix(fix.tag, self.geometry.length_m - fix.x_m, fix.variance_m2, -fix.cross_m)
 
     def _hold(self, fix: TrackFix) -> List[TrackFix]:
         """Hold a fix until the direction is decided; then release every held one."""

@@ -157,10 +157,12 @@ from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.qos import OVERRIDES, publisher_events, subscription_events
 from kf_train.ros.runner import executor_option, run, StartupError
 from kf_train.ros.session import EstimatorSession, Measurement
+from kf_train.ros.track_input import fix_from_msg
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
@@ -259,9 +261,11 @@ class EstimatorNode(Node):
         # A position measurement arrives serialised and only its four fields are read
         # (messages.measurement_from_serialized): rclpy's deserialisation would cost
         # more than the whole filter step.
+        kind = Odometry if self.measures_velocity else PoseWithCovarianceStamped
+        self.track = self.session.track     # measurement_type navsatfix: kf_train.ros.track_input
         self.subscription = self._subscribe(
-            Odometry if self.measures_velocity else PoseWithCovarianceStamped,
-            'measurement', self._on_measurement, qos, raw=not self.measures_velocity)
+            NavSatFix if self.track else kind, 'measurement', self._on_measurement, qos,
+            raw=not (self.measures_velocity or self.track))
         self.velocity_subscription = None
         if self.session.fuses_velocity:
             self.velocity_subscription = self._subscribe(
@@ -324,6 +328,12 @@ class EstimatorNode(Node):
 
     def _on_measurement(self, msg) -> None:
         """Fuse one measurement and publish the estimate, the prediction, the innovation."""
+        if self.track is not None:
+            for outputs in self.session.on_fix(fix_from_msg(msg),
+                                               self.get_clock().now().nanoseconds):
+                self._publish(outputs)
+            self._last_measurement = self.track.last_measurement
+            return
         if self.measures_velocity:
             read = messages.from_odometry_msg(msg)
             measurement = Measurement(read.stamp_ns, read.frame_id, read.position_m,
@@ -422,7 +432,8 @@ class EstimatorNode(Node):
         """Check the inputs for silence; log changes; withhold or widen a stale estimate."""
         options = self.config.options
         names = self.watch.topics
-        counts = {names[0]: self.session.received}
+        counts = {names[0]: self.session.received if self.track is None
+                  else self.track.fixes.counts.fixes}
         if len(names) > 1:
             counts[names[1]] = self.session.controls_received
         changes = self.watch.check(counts, time.monotonic(), self._expected_period_s(),

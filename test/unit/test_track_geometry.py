@@ -137,7 +137,7 @@ def test_direction_auto(reverse):
     np.testing.assert_allclose(x, s if not reverse else geometry.length_m - arcs[-1] + s,
                                atol=TOLERANCE_M)
     assert all(f.cross_m == pytest.approx(2.0, abs=TOLERANCE_M) for f in out)
-    assert [f.t_s for f in out] == [0.4 * i for i in range(len(lat))]
+    assert [f.tag for f in out] == [0.4 * i for i in range(len(lat))]
 
 
 def test_direction_waits_for_a_run():
