@@ -27,8 +27,9 @@ replay, so both fuse the same numbers.
 """
 
 from dataclasses import dataclass
-from typing import Any, List, Optional
+from typing import Any, List, NamedTuple, Optional
 
+from kf_train.filters import NS_PER_S
 from kf_train.io.track_geometry import TrackGeometry
 import numpy as np
 
@@ -45,6 +46,35 @@ DIRECTION_FIXES = 5
 PENDING_MAX = 3000
 """Most fixes held while the direction is open (the oldest are dropped past it)."""
 TRACK_DIRECTIONS = ('auto', 'forward', 'reverse')
+COVARIANCE_TYPE_UNKNOWN = 0
+"""sensor_msgs/NavSatFix position_covariance_type without a covariance."""
+STATUS_NO_FIX = -1
+"""sensor_msgs/NavSatStatus status without a position (below it: none either)."""
+
+
+class Fix(NamedTuple):
+    """A sensor_msgs/NavSatFix as the track reads it (and when it was recorded, if read)."""
+
+    stamp_ns: int
+    frame_id: str
+    has_fix: bool
+    lat_deg: float
+    lon_deg: float
+    covariance_en_m2: Optional[np.ndarray]
+    """The east/north block of position_covariance, or None (COVARIANCE_TYPE_UNKNOWN)."""
+    record_ns: int = 0
+
+
+def fix_from_msg(msg, record_ns: int = 0) -> Fix:
+    """Return the fields of a NavSatFix, read by attribute: rclpy's or rosbags' message."""
+    stamp = msg.header.stamp
+    covariance = None
+    if int(msg.position_covariance_type) != COVARIANCE_TYPE_UNKNOWN:
+        c = msg.position_covariance           # ENU, row-major 3x3
+        covariance = np.array([[c[0], c[1]], [c[3], c[4]]], dtype=float)
+    return Fix(int(stamp.sec) * NS_PER_S + int(stamp.nanosec), msg.header.frame_id,
+               int(msg.status.status) > STATUS_NO_FIX, float(msg.latitude),
+               float(msg.longitude), covariance, record_ns)
 
 
 @dataclass(frozen=True)

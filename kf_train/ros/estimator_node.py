@@ -146,6 +146,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.estimator import NS_PER_S
+from kf_train.io import fix_from_msg
 from kf_train.ros import input_watch, messages
 from kf_train.ros.diagnostics import gate_reach_m, MATCHED_KEYS, regime_names, STATUS_SUFFIX
 from kf_train.ros.estimator_params import (
@@ -157,7 +158,6 @@ from kf_train.ros.parameters import declare_table, watch_changes
 from kf_train.ros.qos import OVERRIDES, publisher_events, subscription_events
 from kf_train.ros.runner import executor_option, run, StartupError
 from kf_train.ros.session import EstimatorSession, Measurement
-from kf_train.ros.track_input import fix_from_msg
 from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node

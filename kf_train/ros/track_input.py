@@ -15,8 +15,8 @@ travel) and what it releases is fused as a position measurement: the node
   (2), KNOWN (3): the east/north block of ``position_covariance`` (ENU, row-major),
   its form along the track. ``measurement_variance`` > 0 overrides the along-track
   variance, as for a pose.
-* The message is read by attribute (``header.stamp``, ``status.status``, ...), so a
-  rosbags message from a bag reads the same as an rclpy one.
+* The message is read by attribute (:func:`kf_train.io.track_fixes.fix_from_msg`), so
+  a rosbags message from a bag reads the same as an rclpy one.
 
 The counts go to ``/diagnostics`` (``fixes.*``, ``track_direction``) and to the
 replay's statistics.
@@ -24,19 +24,15 @@ replay's statistics.
 
 from typing import List, NamedTuple, Optional, Tuple
 
-from kf_train.estimator import NS_PER_S
 from kf_train.io import (
-    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, load_track, TRACK_DIRECTIONS, TrackError,
+    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, Fix, load_track, TRACK_DIRECTIONS, TrackError,
     TrackFixes)
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec
-import numpy as np
 
 MEASUREMENT_TYPES = ('pose', 'navsatfix')
 """The ``measurement`` topic's type (parameter measurement_type)."""
 FIX_VARIANCE_M2 = 3.0
 """Default variance of a fix without covariance [m²]: issue 24's R for real logs."""
-COVARIANCE_TYPE_UNKNOWN = 0
-STATUS_NO_FIX = -1
 
 _FIXED = ' Fixed at start-up (restart to change).'
 _GROUP = 'fixed at start-up (restart to change)'
@@ -80,18 +76,6 @@ PARAMETERS_TRACK = (
 """The NavSatFix input's parameters (part of the estimator's table)."""
 
 
-class Fix(NamedTuple):
-    """A NavSatFix as the track input reads it."""
-
-    stamp_ns: int
-    frame_id: str
-    has_fix: bool
-    lat_deg: float
-    lon_deg: float
-    covariance_en_m2: Optional[np.ndarray]
-    """The east/north covariance, or None (COVARIANCE_TYPE_UNKNOWN)."""
-
-
 class TrackMeasurement(NamedTuple):
     """A fix on the track, in the fields a position measurement has (session.Measurement)."""
 
@@ -99,18 +83,6 @@ class TrackMeasurement(NamedTuple):
     frame_id: str
     position_m: float
     variance_m2: float
-
-
-def fix_from_msg(msg) -> Fix:
-    """Return the fields of a sensor_msgs/NavSatFix (rclpy's or rosbags')."""
-    stamp = msg.header.stamp
-    stamp_ns = int(stamp.sec) * NS_PER_S + int(getattr(stamp, 'nanosec', 0))
-    covariance = None
-    if int(msg.position_covariance_type) != COVARIANCE_TYPE_UNKNOWN:
-        c = msg.position_covariance
-        covariance = np.array([[c[0], c[1]], [c[3], c[4]]], dtype=float)
-    return Fix(stamp_ns, msg.header.frame_id, int(msg.status.status) > STATUS_NO_FIX,
-               float(msg.latitude), float(msg.longitude), covariance)
 
 
 def check_track_values(values) -> None:

@@ -11,6 +11,9 @@ are counted in /diagnostics and never reach the filter.
 import json
 import time
 
+from geometry_msgs.msg import Vector3Stamped
+from kf_train.cli import main as kf_train_main
+from kf_train.io.bagio_types import NAVSATFIX, TYPESTORE
 from kf_train.ros import messages
 from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
@@ -18,8 +21,11 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.parameter import Parameter
+from rclpy.serialization import serialize_message
 from ros_helpers import own_node, spin_until
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from sensor_msgs.msg import NavSatFix, NavSatStatus
+from test_bag_replay_live import odometry_numbers, vector_numbers
 
 pyproj = pytest.importorskip('pyproj')
 
@@ -63,7 +69,7 @@ def fix_sequence(base_ns, count=60):
     return fixes
 
 
-def live_fix_outputs(context, executor, fixes, parameters):
+def live_fix_outputs(context, executor, fixes, parameters, outputs=None):
     """Send the fixes one by one to an in-process node; return (node, estimates)."""
     node = own_node(EstimatorNode(context=context, parameter_overrides=[
         Parameter(name, value=value) for name, value in parameters.items()]))
@@ -71,16 +77,21 @@ def live_fix_outputs(context, executor, fixes, parameters):
     executor.add_node(node)
     executor.add_node(probe)
     publisher = probe.create_publisher(NavSatFix, 'measurement', 10)
-    estimates = []
-    probe.create_subscription(Odometry, 'estimate', estimates.append, 1000)
-    assert spin_until(executor, lambda: publisher.get_subscription_count() == 1
-                      and node.estimate_pub.get_subscription_count() == 1, 10.0)
+    topics = {'estimate': Odometry, 'prediction': Odometry, 'innovation': Vector3Stamped}
+    outputs = {topic: [] for topic in topics} if outputs is None else outputs
+    for topic, message_type in topics.items():
+        probe.create_subscription(message_type, topic, outputs[topic].append, 1000)
+    node_publishers = [p for p in node.publishers if p.topic_name.rsplit('/', 1)[-1] in topics]
+    assert spin_until(executor, lambda: publisher.get_subscription_count() == 1 and all(
+        p.get_subscription_count() == 1 for p in node_publishers), 10.0)
     counts = node.session.track.fixes.counts
     for sent, msg in enumerate(fixes, start=1):
         publisher.publish(msg)
         assert spin_until(executor, lambda: counts.fixes == sent, 5.0)
-        assert spin_until(executor, lambda: len(estimates) == node.session.fused, 5.0)
-    return node, estimates
+        assert spin_until(executor, lambda: len(outputs['estimate']) == node.session.fused
+                          and len(outputs['prediction']) == node.session.fused
+                          and len(outputs['innovation']) == node.session.innovations, 5.0)
+    return node, outputs['estimate']
 
 
 def test_navsatfix_on_a_track_drawn_against_the_travel(ros_context, executor, tmp_path):
@@ -115,3 +126,39 @@ def test_known_covariance_is_projected_on_the_track(ros_context, executor, tmp_p
     assert node.session.track.last_measurement.variance_m2 == pytest.approx(3.25, abs=0.01)
     assert node.session.track.fixes.counts.direction == 'reverse'
     assert node.session.fused == len(fixes) - 2       # no pending with a direction given
+
+
+def replay_fix_outputs(tmp_path, fixes, track, overrides):
+    """Replay the fixes from a bag (topic /fix) with --track; return the output topics."""
+    last_ns = max(messages.stamp_to_ns(m.header.stamp) for m in fixes)
+    with Writer(tmp_path / 'in', version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        connection = writer.add_connection('/fix', NAVSATFIX, typestore=TYPESTORE)
+        for i, msg in enumerate(fixes):    # recorded after the last stamp, in sending order
+            writer.write(connection, last_ns + NS + i * 10_000_000, serialize_message(msg))
+    argv = ['replay', str(tmp_path / 'in'), '--output', str(tmp_path / 'out.mcap'),
+            '--track', str(track)]
+    for assignment in overrides:
+        argv += ['-p', assignment]
+    assert kf_train_main(argv) == 0
+    outputs = {'estimate': [], 'prediction': [], 'innovation': []}
+    with Reader(tmp_path / 'out.mcap') as reader:
+        for c, _, raw in reader.messages():
+            name = c.topic.lstrip('/')
+            if name in outputs:
+                outputs[name].append(TYPESTORE.deserialize_cdr(raw, c.msgtype))
+    return outputs
+
+
+def test_navsatfix_live_and_bag_replay_are_bit_equal(ros_context, executor, tmp_path):
+    """The same fixes live and from a bag: the same estimates, predictions, innovations."""
+    track = write_track(tmp_path / 'track.geojson')
+    fixes = fix_sequence(time.time_ns() - 60 * NS)
+    live = {'estimate': [], 'prediction': [], 'innovation': []}
+    node, _ = live_fix_outputs(ros_context, executor, fixes, {
+        'measurement_type': 'navsatfix', 'track': str(track), 'history_s': 5.0}, live)
+    assert node.session.track.fixes.counts.off_track == 1
+    replayed = replay_fix_outputs(tmp_path, fixes, track, ['history_s:=5.0'])
+    for topic, numbers in (('estimate', odometry_numbers), ('prediction', odometry_numbers),
+                           ('innovation', vector_numbers)):
+        assert len(live[topic]) == len(replayed[topic]) > 50, topic
+        assert [numbers(m) for m in live[topic]] == [numbers(m) for m in replayed[topic]]
