@@ -152,7 +152,9 @@ def _parser() -> argparse.ArgumentParser:
     bag.add_argument('--track', metavar='FILE', default=None,
                      help='the measurement topic is sensor_msgs/NavSatFix, projected onto '
                           'this track (GeoJSON LineString or CSV lat,lon): the same as -p '
-                          'measurement_type:=navsatfix -p track:=FILE')
+                          'measurement_type:=navsatfix -p track:=FILE. With it INPUT may '
+                          'also be a CSV of fixes: t [s], lat, lon [deg], optional '
+                          'accuracy_m (horizontal σ [m])')
     return parser
 
 
@@ -165,8 +167,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f'{name:22s} {load_any_preset(name, None).description}')
         return EXIT_OK
     if args.input is not None and args.input != '-' and (
-            is_bag(args.input) or (args.preset is None and args.config is None
-                                   and not args.input.lower().endswith('.csv'))):
+            is_bag(args.input) or args.track is not None
+            or (args.preset is None and args.config is None
+                and not args.input.lower().endswith('.csv'))):
         return _bag_main(parser, args)
     if args.preset is None and args.config is None:
         parser.error('one of --preset NAME or --config FILE is required')
@@ -231,14 +234,17 @@ def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 def _run_bag(args: argparse.Namespace) -> int:
     """Run the bag replay for parsed ``kf-train replay`` arguments; return the exit code."""
-    from kf_train.replay import bag        # needs rosbags: imported when used
+    from kf_train.replay import bag, fix_table   # need rosbags: imported when used
     try:
         track = [] if args.track is None else [
             'measurement_type:=navsatfix', f'track:={args.track}']
         config = bag.load_config(args.params_file or [], (args.parameter or []) + track)
         with collector_frozen():
-            summary = bag.replay_bag(args.input, args.output, config, args.topic,
-                                     args.control_topic, args.velocity_topic)
+            if args.track is None or is_bag(args.input):
+                summary = bag.replay_bag(args.input, args.output, config, args.topic,
+                                         args.control_topic, args.velocity_topic)
+            else:                            # --track: a CSV of fixes (t, lat, lon)
+                summary = fix_table.replay_fix_table(args.input, args.output, config)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return 1

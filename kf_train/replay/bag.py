@@ -249,16 +249,23 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
     # The speeds the node subscribes: the rail preset's, unless velocity_type is none.
     velocity_type = bagio.VELOCITY_TYPES.get(config.options.velocity_type) \
         if is_rail(preset) else None
-    counts = {'estimates': 0}
     with bagio.BagInput(bag_path, measurement_type, control_type, topic,
                         control_topic, velocity_type, velocity_topic) as bag:
-        run = BagRun(config, bag)
-        (write_csv if output_path.endswith('.csv') else write_bag)(run, output_path, counts)
-        session = run.session
-        return BagReplaySummary(
-            session.received if session else 0, session.controls_received if session else 0,
-            counts['estimates'], session.rejected if session else 0,
-            (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
-            bag.measurement_topic, session.velocities_received if session else 0,
-            bag.velocity_topic, session.velocities_rejected if session else 0,
-            dict(session.track.values()) if session and session.track else None)
+        return replay_source(bag, output_path, config, start)
+
+
+def replay_source(bag, output_path: str, config, start: Optional[float] = None
+                  ) -> BagReplaySummary:
+    """Replay an open bag (or a table read as one: replay.fix_table) into ``output_path``."""
+    start = time.perf_counter() if start is None else start
+    counts = {'estimates': 0}
+    run = BagRun(config, bag)
+    (write_csv if output_path.endswith('.csv') else write_bag)(run, output_path, counts)
+    session = run.session
+    return BagReplaySummary(
+        session.received if session else 0, session.controls_received if session else 0,
+        counts['estimates'], session.rejected if session else 0,
+        (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
+        bag.measurement_topic, session.velocities_received if session else 0,
+        bag.velocity_topic, session.velocities_rejected if session else 0,
+        dict(session.track.values()) if session and session.track else None)
