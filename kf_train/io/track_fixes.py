@@ -139,10 +139,14 @@ class TrackFixes:
         """Take one fix, tagged; return the measurements it releases (none, one, the held)."""
         counts = self.counts
         counts.fixes += 1
-        if not has_fix or not (np.isfinite(lat_deg) and np.isfinite(lon_deg)):
+        if not has_fix or not (abs(lat_deg) <= 90.0 and abs(lon_deg) <= 180.0):  # NaN too
             counts.no_fix += 1
             return []
-        s_m, cross_m, tangent = self.geometry.project([lat_deg], [lon_deg])
+        points = self.geometry.to_local([lat_deg], [lon_deg])
+        if not np.all(np.isfinite(points)):      # beyond the map's reach: surely off it
+            counts.off_track += 1
+            return []
+        s_m, cross_m, tangent = self.geometry.project_local(points)
         along, across = tangent[0], np.array([-tangent[0, 1], tangent[0, 0]])
         if covariance_en_m2 is None:
             variance_m2 = cross_variance_m2 = self.variance_m2

@@ -153,8 +153,12 @@ class TrackGeometry:
     def project(self, lat_deg, lon_deg, s_min_m=None, s_max_m=None
                 ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return (s_m, cross_m, tangent (N, 2)) of fixes: position on the track, its bearing."""
-        points = self.to_local(lat_deg, lon_deg)
-        s_m, cross_m = project_onto_polyline(points, self.vertices_m, s_min_m, s_max_m)
+        return self.project_local(self.to_local(lat_deg, lon_deg), s_min_m, s_max_m)
+
+    def project_local(self, points_m: np.ndarray, s_min_m=None, s_max_m=None
+                      ) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return (s_m, cross_m, tangent) of (N, 2) finite points in the track's frame."""
+        s_m, cross_m = project_onto_polyline(points_m, self.vertices_m, s_min_m, s_max_m)
         return s_m, cross_m, self.tangent(s_m)
 
     def tangent(self, s_m) -> np.ndarray:

@@ -192,3 +192,17 @@ def test_bad_options():
         TrackFixes(geometry, 3.0, cross_track_max_m=-1.0)
     with pytest.raises(ValueError):
         TrackFixes(geometry, 0.0)
+
+
+def test_hostile_fixes():
+    """NaN or out-of-range positions are no fixes; the antipode is off the track; no raise."""
+    vertices, arcs = geodesic_track(0.0)
+    fixes = TrackFixes(TrackGeometry(vertices), variance_m2=3.0, direction='forward')
+    for lat, lon in ((float('nan'), 4.5), (50.9, float('inf')), (91.0, 4.5), (50.9, -181.0)):
+        assert fixes.add(0.0, lat, lon) == []
+    assert fixes.counts.no_fix == 4
+    assert fixes.add(0.0, -50.9, -175.5) == [] and fixes.counts.off_track == 1
+    lat, lon, _, _ = offset_fixes(vertices, arcs, np.zeros(len(vertices) - 1))
+    # A covariance with NaN: the variance goes on as NaN (the estimator refuses it).
+    fix, = fixes.add(0.4, lat[3], lon[3], np.full((2, 2), np.nan))
+    assert np.isnan(fix.variance_m2)
