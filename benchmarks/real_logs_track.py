@@ -20,7 +20,11 @@ gate, the direction of travel decided by the node). Per log it reports
 * with ``--reverse``, the same with the track file drawn against the travel.
 
     PYTHONPATH=. python benchmarks/real_logs_track.py [--logs 29083,...] [--cache DIR]
-        [-p NAME:=VALUE ...] [--reverse]
+        [-p NAME:=VALUE ...] [--reverse] [--network]
+
+``--network`` instead chooses each log's path on tp-lib's ``network_airport.geojson``
+from its fixes (:mod:`kf_train.io.track_network`, offline map matching) and compares it
+with tp-lib's path calculation, element by element.
 
 The data are real_logs.py's (its cache, ``--data`` or ``$KF_TRAIN_TPLIB_DATA``; tp-lib,
 Apache-2.0, is not in this repository). Needs pyproj and rosbags. Figures only.
@@ -182,6 +186,24 @@ def _resets(mode: dict) -> str:
     return ', '.join(f'{k} {v}' for k, v in mode['resets'].items()) or 'no reset'
 
 
+def network_paths(data: Path, logs: dict) -> None:
+    """Print, per log, whether the path chosen on the network is tp-lib's path calculation."""
+    from kf_train.io.track_network import TrackNetwork
+    network = TrackNetwork.from_file(data / 'network_airport.geojson')
+    rows = []
+    for name, (fixes, path) in logs.items():
+        _, lat, lon, _ = real_logs.read_fixes(fixes)
+        ours = [element for element, _ in network.match(lat, lon)]
+        theirs = [f['properties']['netelement_id']
+                  for f in json.loads(path.read_text())['features']]
+        same = next((k for k, (a, b) in enumerate(zip(ours, theirs)) if a != b),
+                    min(len(ours), len(theirs)))
+        rows.append((name, 'yes' if ours == theirs else 'no', len(theirs), len(ours),
+                     same, len(set(theirs)) < len(theirs)))
+    print(format_table(('log', "tp-lib's path", "tp-lib's elements", 'ours',
+                        'first elements equal', "tp-lib's path runs an element twice"), rows))
+
+
 def print_table(results: List[dict], labels) -> None:
     """Print one row per log and mode."""
     rows = []
@@ -219,12 +241,20 @@ def main() -> int:
     parser.add_argument('-p', '--param', metavar='NAME:=VALUE', action='append',
                         help='a node parameter for both replays; may be repeated')
     parser.add_argument('--json', metavar='FILE', help='also write the figures as JSON')
+    parser.add_argument('--network', action='store_true',
+                        help="only choose each log's path on network_airport.geojson and "
+                             "compare it with tp-lib's path calculation")
     args = parser.parse_args()
     cache = Path(args.cache).expanduser()
-    logs = real_logs.find_logs(real_logs.data_dir(args, cache))
+    data = real_logs.data_dir(args, cache)
+    logs = real_logs.find_logs(data)
     if args.logs:
         wanted = {w if w.startswith('log_') else f'log_{w}' for w in args.logs.split(',')}
         logs = {k: v for k, v in logs.items() if k in wanted}
+    if args.network:
+        network_paths(data if (data / 'network_airport.geojson').exists()
+                      else data / 'test-data', logs)
+        return 0
     results = []
     for name, files in logs.items():
         start = time.perf_counter()

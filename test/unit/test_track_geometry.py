@@ -195,7 +195,7 @@ def test_bad_options():
 
 
 def test_hostile_fixes():
-    """NaN or out-of-range positions are no fixes; the antipode is off the track; no raise."""
+    """Positions NaN or out of range are no fixes; the antipode is off the track; no raise."""
     vertices, arcs = geodesic_track(0.0)
     fixes = TrackFixes(TrackGeometry(vertices), variance_m2=3.0, direction='forward')
     for lat, lon in ((float('nan'), 4.5), (50.9, float('inf')), (91.0, 4.5), (50.9, -181.0)):
