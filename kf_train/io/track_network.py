@@ -36,6 +36,18 @@ SWITCH_COST = 5.0
 MAX_HOPS = 3
 
 
+def is_network_file(path) -> bool:
+    """Return whether a file is a GeoJSON FeatureCollection of more than one LineString."""
+    try:
+        document = json.loads(Path(path).read_text(encoding='utf-8'))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(document, dict) or document.get('type') != 'FeatureCollection':
+        return False
+    return sum((f.get('geometry') or {}).get('type') == 'LineString'
+               for f in document.get('features') or [] if isinstance(f, dict)) > 1
+
+
 def _elements(document: dict) -> Tuple[List[str], List[np.ndarray], List[dict]]:
     """Return the ids, lon/lat vertices of the LineStrings and the netrelation properties."""
     ids, lines, relations = [], [], []

@@ -82,3 +82,27 @@ def test_fix_table_errors(tmp_path, capsys):
         assert kf_train_main(['replay', str(bad), '--track', str(track), '-o',
                               str(tmp_path / 'o.csv')]) == 1
         assert expected in capsys.readouterr().err
+
+
+def test_a_network_track_runs_on_the_path_the_fixes_took(tmp_path, capsys):
+    """--track NETWORK: the path is chosen first; the same output as that path as a track."""
+    from kf_train.io import TrackNetwork
+    from test_track_network import network, run_fixes
+    document = network(with_relations=False)
+    (tmp_path / 'network.geojson').write_text(json.dumps(document))
+    lat, lon = run_fixes(98.0, reverse=False)
+    table = tmp_path / 'fixes.csv'
+    rows = [f'{1.7e9 + 0.4 * k!r},{a!r},{b!r}\n'
+            for k, (a, b) in enumerate(zip(lat.tolist(), lon.tolist()))]
+    table.write_text('t,lat,lon\n' + ''.join(rows))
+    net = TrackNetwork(document)
+    path = net.match(lat, lon)
+    assert path == [('A', False), ('C', True)]
+    (tmp_path / 'path.geojson').write_text(json.dumps(
+        {'type': 'LineString', 'coordinates': net.path_lonlat(path).tolist()}))
+    for track in ('network', 'path'):
+        assert kf_train_main(['replay', str(table), '--track',
+                              str(tmp_path / f'{track}.geojson'), '-o',
+                              str(tmp_path / f'{track}.csv')]) == 0
+        assert 'off the track' in capsys.readouterr().err
+    assert (tmp_path / 'network.csv').read_text() == (tmp_path / 'path.csv').read_text()
