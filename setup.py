@@ -51,6 +51,9 @@ setup(
         'tune': ['scipy'],
         # a progress bar for long offline replays on a terminal: kf_train.replay.progress
         'progress': ['tqdm'],
+        # NavSatFix on a track: kf_train.io.track_geometry's local transverse Mercator
+        # (PROJ, the reference for map projections; wheels for every supported Python)
+        'track': ['pyproj'],
     },
     zip_safe=True,
     maintainer='kf_train maintainers',

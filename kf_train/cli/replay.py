@@ -149,6 +149,12 @@ def _parser() -> argparse.ArgumentParser:
                           "with -p measurement_velocity_variance:=V) (default: 'velocity' "
                           'when the bag has it with that type, as the node subscribes it; '
                           '-p velocity_type:=none fuses none)')
+    bag.add_argument('--track', metavar='FILE', default=None,
+                     help='the measurement topic is sensor_msgs/NavSatFix, projected onto '
+                          'this track (GeoJSON LineString or CSV lat,lon): the same as -p '
+                          'measurement_type:=navsatfix -p track:=FILE. With it INPUT may '
+                          'also be a CSV of fixes: t [s], lat, lon [deg], optional '
+                          'accuracy_m (horizontal σ [m])')
     return parser
 
 
@@ -161,8 +167,9 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(f'{name:22s} {load_any_preset(name, None).description}')
         return EXIT_OK
     if args.input is not None and args.input != '-' and (
-            is_bag(args.input) or (args.preset is None and args.config is None
-                                   and not args.input.lower().endswith('.csv'))):
+            is_bag(args.input) or args.track is not None
+            or (args.preset is None and args.config is None
+                and not args.input.lower().endswith('.csv'))):
         return _bag_main(parser, args)
     if args.preset is None and args.config is None:
         parser.error('one of --preset NAME or --config FILE is required')
@@ -227,12 +234,17 @@ def _bag_main(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
 def _run_bag(args: argparse.Namespace) -> int:
     """Run the bag replay for parsed ``kf-train replay`` arguments; return the exit code."""
-    from kf_train.replay import bag        # needs rosbags: imported when used
+    from kf_train.replay import bag, fix_table   # need rosbags: imported when used
     try:
-        config = bag.load_config(args.params_file or [], args.parameter or [])
+        track = [] if args.track is None else [
+            'measurement_type:=navsatfix', f'track:={args.track}']
+        config = bag.load_config(args.params_file or [], (args.parameter or []) + track)
         with collector_frozen():
-            summary = bag.replay_bag(args.input, args.output, config, args.topic,
-                                     args.control_topic, args.velocity_topic)
+            if args.track is None or is_bag(args.input):
+                summary = bag.replay_bag(args.input, args.output, config, args.topic,
+                                         args.control_topic, args.velocity_topic)
+            else:                            # --track: a CSV of fixes (t, lat, lon)
+                summary = fix_table.replay_fix_table(args.input, args.output, config)
     except ValueError as error:
         print(f'kf-train replay: error: {" ".join(str(error).split())}', file=sys.stderr)
         return 1
@@ -241,10 +253,18 @@ def _run_bag(args: argparse.Namespace) -> int:
           f'{summary.measurement_topic}, {summary.controls} controls, '
           + (f'{summary.velocities} speeds on {summary.velocity_topic} '
              f'({summary.velocities_rejected} rejected), ' if summary.velocity_topic else '')
+          + (_fixes_text(summary.fixes) if summary.fixes else '')
           + f'{summary.rejected} rejected -> {summary.estimates} estimates in '
           f'{args.output} ({summary.seconds:.3f} s, {rate:.0f} measurements/s)',
           file=sys.stderr)
     return 0
+
+
+def _fixes_text(fixes: dict) -> str:
+    """Return what the track did with the fixes, for the summary line."""
+    return (f"({fixes['fixes.received']} fixes: {fixes['fixes.no_fix']} without a position, "
+            f"{fixes['fixes.off_track']} off the track, {fixes['fixes.pending']} held; "
+            f"direction {fixes['track_direction']}), ")
 
 
 if __name__ == '__main__':

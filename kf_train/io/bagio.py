@@ -13,7 +13,9 @@ the rest is ignored:
   geometry_msgs/msg/PoseWithCovarianceStamped for a position (``pose.pose.position.x``,
   variance ``pose.covariance[0]``), nav_msgs/msg/Odometry for position and velocity
   (``pose.pose.position.x`` / ``pose.covariance[0]``, ``twist.twist.linear.x`` /
-  ``twist.covariance[0]``), as the estimator node subscribes them;
+  ``twist.covariance[0]``), as the estimator node subscribes them; or
+  sensor_msgs/msg/NavSatFix (``measurement_type`` navsatfix), as
+  :class:`kf_train.io.track_fixes.Fix` tuples;
 * the control topic where the preset has one: geometry_msgs/msg/AccelStamped
   (``accel.linear.x``) or geometry_msgs/msg/TwistStamped (``twist.linear.x``);
 * the speeds' topic where the configuration fuses them (the rail preset's
@@ -46,15 +48,16 @@ from typing import Callable, Dict, Iterator, NamedTuple, Optional, Sequence, Tup
 from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_layout import FieldReader
 from kf_train.io.bagio_types import (
-    ACCEL, CONTROL_TYPES, MEASUREMENT_TYPES, ODOMETRY, POSE, TWIST, TWIST_COVARIANCE,
-    VELOCITY_TYPES)
+    ACCEL, CONTROL_TYPES, MEASUREMENT_TYPES, NAVSATFIX, ODOMETRY, POSE, TWIST, TWIST_COVARIANCE,
+    TYPESTORE, VELOCITY_TYPES)
+from kf_train.io.track_fixes import fix_from_msg
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 from rosbags.serde import SerdeError
 
 NAN = float('nan')
-__all__ = ['BagInput', 'Control', 'expected_types', 'Measurement', 'resolve_topic',
-           'Velocity', 'VELOCITY_TYPES']
+__all__ = ['BagInput', 'Control', 'expected_types', 'Measurement', 'NAVSATFIX',
+           'resolve_topic', 'Velocity', 'VELOCITY_TYPES']
 # At most this many topics are listed in an error message.
 LISTED_TOPICS = 8
 # What the rosbags reader raises on broken storage; decoding adds SerdeError. A garbled
@@ -192,6 +195,9 @@ _FIELDS = {
 
 def _decoder(kind: str, role: str) -> Callable:
     """Return a function (raw bytes, record time) -> the message of ``role`` for ``kind``."""
+    if kind == NAVSATFIX:      # a track.Fix; decoded whole (a fix is rarer than 100 Hz)
+        return lambda raw, record_ns: fix_from_msg(TYPESTORE.deserialize_cdr(raw, kind),
+                                                   record_ns)
     # FieldReader gives Python floats and ints, whichever way it read them.
     read = FieldReader(kind, _FIELDS[kind]).read
 
@@ -242,8 +248,8 @@ class BagInput:
         if velocity_type not in (None, TWIST_COVARIANCE, TWIST):
             raise ValueError(f'velocity_type must be None, {TWIST_COVARIANCE} or {TWIST}, '
                              f'got {velocity_type!r}')
-        if measurement_type not in (POSE, ODOMETRY):
-            raise ValueError(f'measurement_type must be {POSE} or {ODOMETRY}, '
+        if measurement_type not in (POSE, ODOMETRY, NAVSATFIX):
+            raise ValueError(f'measurement_type must be {POSE}, {ODOMETRY} or {NAVSATFIX}, '
                              f'got {measurement_type!r}')
         if control_type not in (None, ACCEL, TWIST):
             raise ValueError(f'control_type must be None, {ACCEL} or {TWIST}, '

@@ -9,6 +9,8 @@ TWIST = 'geometry_msgs/msg/TwistStamped'
 TWIST_COVARIANCE = 'geometry_msgs/msg/TwistWithCovarianceStamped'
 VECTOR3 = 'geometry_msgs/msg/Vector3Stamped'
 DIAGNOSTICS = 'diagnostic_msgs/msg/DiagnosticArray'
+NAVSATFIX = 'sensor_msgs/msg/NavSatFix'
+"""The measurement type of ``measurement_type`` navsatfix (kf_train.ros.track_input)."""
 
 MEASUREMENT_TYPES = {('position',): POSE, ('position', 'velocity'): ODOMETRY}
 """A preset's measurement names -> the message type of its ``measurement`` topic."""

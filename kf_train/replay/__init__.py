@@ -10,6 +10,8 @@ Floor 5, the replay engines: a preset's filter or the node's session over record
 * :mod:`~kf_train.replay.bag`: the estimator node's session over a rosbag2 bag. It
   needs rosbags (the extra ``[bag]``): imported when used (``from kf_train.replay
   import bag``), not here;
+* :mod:`~kf_train.replay.fix_table`: a CSV of GNSS fixes (t, lat, lon) on a track
+  file, through the same session (imported when used, as ``bag``);
 * :mod:`~kf_train.replay.engines` chooses among the table engines;
   :mod:`~kf_train.replay.progress` draws a progress bar (tqdm, when installed).
 """
@@ -26,11 +28,12 @@ from kf_train.replay.stream import input_columns, is_parquet, stream_replay
 
 __all__ = [
     'bag', 'check_bank_times', 'CODECS', 'collector_frozen', 'counted', 'dask_replay',
-    'ENGINES', 'input_columns', 'is_parquet', 'load_any_preset', 'output_columns', 'Progress',
-    'replay', 'ReplaySummary', 'run_engine', 'run_preset', 'smooth_bank', 'stream_replay',
+    'ENGINES', 'fix_table', 'input_columns', 'is_parquet', 'load_any_preset',
+    'output_columns', 'Progress', 'replay', 'ReplaySummary', 'run_engine', 'run_preset',
+    'smooth_bank', 'stream_replay',
 ]
 
-_LAZY = ('bag',)
+_LAZY = ('bag', 'fix_table')
 
 
 def __getattr__(name: str):

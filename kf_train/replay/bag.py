@@ -20,6 +20,10 @@ fuses (``velocity_type``: TwistWithCovarianceStamped by default; default topic: 
 bag's ``velocity`` if it has that type, as the live node subscribes it; ``-p
 velocity_type:=none`` fuses none). Speeds go through the session's
 :meth:`~kf_train.ros.session.EstimatorSession.on_velocity`, as the node's callback.
+With ``-p measurement_type:=navsatfix -p track:=FILE`` (or ``--track FILE``) the
+measurement topic is a sensor_msgs/NavSatFix one (default: ``measurement``, else the
+only NavSatFix topic, e.g. ``/fix``), projected onto the track as the node does
+(:meth:`~kf_train.ros.session.EstimatorSession.on_fix`).
 
 Output (``--output``):
 
@@ -44,7 +48,7 @@ from typing import Callable, Iterator, List, NamedTuple, Optional
 
 from kf_train.estimator import is_rail, resolve_preset
 from kf_train.filters import NS_PER_S
-from kf_train.io import bagio, bagio_output, check_output_path, csvio, write_atomic
+from kf_train.io import bagio, bagio_output, check_output_path, csvio, Fix, write_atomic
 from kf_train.replay.progress import counted
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
 import numpy as np
@@ -66,6 +70,8 @@ class BagReplaySummary(NamedTuple):
     """Speeds read (0 without a velocity topic)."""
     velocity_topic: Optional[str] = None
     velocities_rejected: int = 0
+    fixes: Optional[dict] = None
+    """measurement_type navsatfix: the fixes' counts (fixes.received, fixes.off_track...)."""
 
 
 def load_config(params_files: List[str], overrides: List[str]):
@@ -126,6 +132,9 @@ class BagRun:
                 yield record_ns, on_measurement(message, record_ns)
             elif kind is velocity_type:
                 yield record_ns, session.on_velocity(message, record_ns)
+            elif kind is Fix:      # measurement_type navsatfix: none, one or the held ones
+                for outputs in session.on_fix(message, record_ns):
+                    yield record_ns, outputs
             else:
                 yield record_ns, on_control(message, record_ns)
 
@@ -235,18 +244,30 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
     preset = resolve_preset(config.settings.preset)
     measurement_type, control_type = bagio.expected_types(preset.measurement_names,
                                                           preset.control_names)
+    if config.options.measurement_type == 'navsatfix':
+        measurement_type = bagio.NAVSATFIX
     # The speeds the node subscribes: the rail preset's, unless velocity_type is none.
     velocity_type = bagio.VELOCITY_TYPES.get(config.options.velocity_type) \
         if is_rail(preset) else None
-    counts = {'estimates': 0}
     with bagio.BagInput(bag_path, measurement_type, control_type, topic,
                         control_topic, velocity_type, velocity_topic) as bag:
-        run = BagRun(config, bag)
-        (write_csv if output_path.endswith('.csv') else write_bag)(run, output_path, counts)
-        session = run.session
-        return BagReplaySummary(
-            session.received if session else 0, session.controls_received if session else 0,
-            counts['estimates'], session.rejected if session else 0,
-            (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
-            bag.measurement_topic, session.velocities_received if session else 0,
-            bag.velocity_topic, session.velocities_rejected if session else 0)
+        from kf_train.replay.fix_table import network_path   # a network: the path first
+        with network_path(config, bag.messages()) as config:
+            return replay_source(bag, output_path, config, start)
+
+
+def replay_source(bag, output_path: str, config, start: Optional[float] = None
+                  ) -> BagReplaySummary:
+    """Replay an open bag (or a table read as one: replay.fix_table) into ``output_path``."""
+    start = time.perf_counter() if start is None else start
+    counts = {'estimates': 0}
+    run = BagRun(config, bag)
+    (write_csv if output_path.endswith('.csv') else write_bag)(run, output_path, counts)
+    session = run.session
+    return BagReplaySummary(
+        session.received if session else 0, session.controls_received if session else 0,
+        counts['estimates'], session.rejected if session else 0,
+        (run.now_ns - run.first_ns) / NS_PER_S, time.perf_counter() - start,
+        bag.measurement_topic, session.velocities_received if session else 0,
+        bag.velocity_topic, session.velocities_rejected if session else 0,
+        dict(session.track.values()) if session and session.track else None)

@@ -146,6 +146,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from kf_train.estimator import NS_PER_S
+from kf_train.io import fix_from_msg
 from kf_train.ros import input_watch, messages
 from kf_train.ros.diagnostics import gate_reach_m, MATCHED_KEYS, regime_names, STATUS_SUFFIX
 from kf_train.ros.estimator_params import (
@@ -161,6 +162,7 @@ from nav_msgs.msg import Odometry
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
@@ -261,9 +263,11 @@ class EstimatorNode(Node):
         # A position measurement arrives serialised and only its four fields are read
         # (messages.measurement_from_serialized): rclpy's deserialisation would cost
         # more than the whole filter step.
+        kind = Odometry if self.measures_velocity else PoseWithCovarianceStamped
+        self.track = self.session.track     # measurement_type navsatfix: kf_train.ros.track_input
         self.subscription = self._subscribe(
-            Odometry if self.measures_velocity else PoseWithCovarianceStamped,
-            'measurement', self._on_measurement, qos, raw=not self.measures_velocity)
+            NavSatFix if self.track else kind, 'measurement', self._on_measurement, qos,
+            raw=not (self.measures_velocity or self.track))
         self.velocity_subscription = None
         if self.session.fuses_velocity:
             self.velocity_subscription = self._subscribe(
@@ -326,6 +330,12 @@ class EstimatorNode(Node):
 
     def _on_measurement(self, msg) -> None:
         """Fuse one measurement and publish the estimate, the prediction, the innovation."""
+        if self.track is not None:
+            for outputs in self.session.on_fix(fix_from_msg(msg),
+                                               self.get_clock().now().nanoseconds):
+                self._publish(outputs)
+            self._last_measurement = self.track.last_measurement
+            return
         if self.measures_velocity:
             read = messages.from_odometry_msg(msg)
             measurement = Measurement(read.stamp_ns, read.frame_id, read.position_m,
@@ -425,7 +435,10 @@ class EstimatorNode(Node):
         options = self.config.options
         names = self.watch.topics
         session = self.session
-        received = {'measurement': session.received, 'control': session.controls_received,
+        # A NavSatFix topic counts every fix that arrived (no-fix ones too: it is alive).
+        received = {'measurement': session.received if self.track is None
+                    else self.track.fixes.counts.fixes,
+                    'control': session.controls_received,
                     'velocity': session.velocities_received}
         counts = {name: received[kind] for name, kind in zip(names, self._inputs)}
         changes = self.watch.check(counts, time.monotonic(), self._expected_period_s(),

@@ -22,6 +22,7 @@ from kf_train.estimator import (
 from kf_train.filters import FILTER_KINDS
 from kf_train.ros.param_spec import (
     BIG, MANAGED_DESCRIPTION, ParameterError, ParamSpec, ParamTable)
+from kf_train.ros.track_input import check_track_values, PARAMETERS_TRACK
 
 QOS_RELIABILITIES = ('best_effort', 'reliable')
 VELOCITY_TYPES = ('twist_with_covariance', 'twist', 'none')
@@ -268,8 +269,9 @@ def _preset_defaults(preset: str) -> Dict[str, Any]:
             for name, value in values.items()}
 
 
-PARAMETERS = ParamTable('estimator', PARAMETERS_FIXED + PARAMETERS_AT_INIT + PARAMETERS_LIVE
-                        + PARAMETERS_NODE, key='preset', derived_defaults=_preset_defaults)
+PARAMETERS = ParamTable('estimator', PARAMETERS_FIXED + PARAMETERS_TRACK + PARAMETERS_AT_INIT
+                        + PARAMETERS_LIVE + PARAMETERS_NODE, key='preset',
+                        derived_defaults=_preset_defaults)
 """Every parameter of the estimator node, in declaration order."""
 
 DEFAULTS = dataclasses.replace(_CORE, **{
@@ -296,6 +298,12 @@ class NodeOptions(NamedTuple):
     qos_depth: int
     managed: bool
     velocity_type: str
+    measurement_type: str
+    track: str
+    track_direction: str
+    cross_track_max_m: float
+    cross_track_sigmas: float
+    fix_variance_m2: float
 
 
 class EstimatorConfig(NamedTuple):
@@ -332,6 +340,7 @@ def estimator_config(values: Mapping[str, Any]) -> EstimatorConfig:
             and is_rail(resolve_preset(settings.preset)):
         raise ParameterError('measurement_velocity_variance must be > 0 with velocity_type '
                              'twist: a TwistStamped carries no variance')
+    check_track_values(values)
     return EstimatorConfig(settings, NodeOptions(**{name: values[name]
                                                     for name in NodeOptions._fields}), values)
 

@@ -22,13 +22,14 @@ diagnostics' rates and ages: :func:`time.monotonic` live, the record time in a r
 
 import collections
 import math
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, List, NamedTuple, Optional
 
 from kf_train.estimator import NS_PER_S, Rejected, StreamEstimator
 from kf_train.ros.diagnostics import (
     Activity, filter_status, FilterStatus, NodeCounts, with_noise_suggestion)
 from kf_train.ros.estimator_params import changed_config, EstimatorConfig, NOISE_AND_GATE
 from kf_train.ros.noise_advice import NoiseAdvisor
+from kf_train.ros.track_input import TrackInput
 import numpy as np
 
 WARN_THROTTLE_S = 5.0
@@ -79,6 +80,9 @@ class EstimatorSession:
         self.fuses_velocity = (self.estimator.fuses_velocity
                                and config.options.velocity_type != 'none')
         """Whether the node subscribes ``velocity`` (rail, velocity_type not none)."""
+        self.track = (TrackInput(config.values, self.measures_velocity)
+                      if config.options.measurement_type == 'navsatfix' else None)
+        """The NavSatFix input (kf_train.ros.track_input), or None: poses."""
         self._monotonic_s = monotonic_s
         self._log = log
         self.received = self.fused = self.rejected = 0
@@ -161,6 +165,11 @@ class EstimatorSession:
         self.innovations += 1
         self.nis.append(step.update.nis)
         return Outputs(step, step.measurement_stamp_ns, step.update)
+
+    def on_fix(self, fix, now_ns: int) -> List[Outputs]:
+        """Project a NavSatFix (track_input.Fix) onto the track; fuse what it releases."""
+        return [self.on_measurement(measurement, now_ns)
+                for measurement in self.track.measurements(fix)]
 
     def _add_to_noise_window(self, stamp_ns: int, measurement) -> None:
         """Give the suggested-q window a fused measurement and its message's variances."""
@@ -272,6 +281,8 @@ class EstimatorSession:
         status = with_noise_suggestion(status, self.noise.suggestion(self._node_variances),
                                        self.config.settings.process_noise_density,
                                        self.noise.span_s)
+        if self.track is not None:
+            status = status._replace(values=list(status.values) + self.track.values())
         if status.timeout_warning is not None and not self.timed_out:
             self._log('warning', status.timeout_warning)
             self.timed_out = True

@@ -9,7 +9,7 @@ in kf_train imports it.
 
 Libraries: only ``ros`` imports rclpy or message packages; only ``cli`` imports
 argparse; only a package that starts processes (``cli``) imports subprocess. An
-optional library (scipy, matplotlib, polars, dask, rosbags, tqdm, numba) is imported
+optional library (scipy, matplotlib, polars, dask, rosbags, tqdm, numba, pyproj) is imported
 only by the package(s) that own its job (:data:`OPTIONAL`), and lazily: inside a
 function, or at the top of a module that its package's ``__init__`` loads on first
 use (listed in its ``_LAZY``, PEP 562). ``benchmarks/`` is outside the package.
@@ -41,7 +41,7 @@ RESTRICTED = {'argparse': ('cli',), 'subprocess': ('cli',)}
 # Optional libraries (extras): the package(s) owning their job; imported lazily.
 OPTIONAL = {'scipy': ('tune',), 'matplotlib': ('plots',), 'polars': ('io',),
             'dask': ('replay',), 'rosbags': ('io',), 'tqdm': ('replay',),
-            'numba': ('filters', 'batch')}
+            'numba': ('filters', 'batch'), 'pyproj': ('io',)}
 ORACLES = ('filterpy', 'pykalman', 'simdkalman')
 
 

@@ -1,0 +1,185 @@
+"""
+A railway network (many LineStrings joined at switches) and the path fixes took on it.
+
+:class:`TrackNetwork` reads a GeoJSON FeatureCollection of LineStrings (the network's
+elements; ``properties.id`` names them, else their index). Two elements are joined
+where tp-lib's ``netrelation`` Points say so (``netelementA``/``netelementB``,
+``positionOnA``/``positionOnB`` 0 or 1, ``navigability`` not ``none``); without such
+Points, where an end of one lies within JOIN_TOLERANCE_M of an end of the other and the
+two leave that point in directions more than 90° apart (a train runs through a switch,
+it does not turn back on it).
+
+:meth:`TrackNetwork.match` chooses the path of a series of fixes offline, as map
+matching does (a hidden Markov model decoded by Viterbi, as tp-lib's path calculation
+and DLR's railpos do): the hidden state is an element and the direction it is run in;
+a fix's likelihood falls with its distance to the element (Gaussian of MATCH_SIGMA_M,
+flat beyond MATCH_CAP_M so that a gross fix cannot pull the path away); the state may
+stay, or pass to an element joined at its far end (up to MAX_HOPS elements on between
+two fixes, SWITCH_COST per element entered). The result is the chain of elements in
+travel order, which :meth:`TrackNetwork.path_lonlat` turns into one line for
+:class:`kf_train.io.track_geometry.TrackGeometry`. Live (a path chosen as the fixes
+come) is not done.
+"""
+
+import json
+from pathlib import Path
+from typing import Dict, List, Sequence, Tuple
+
+from kf_train.io.track import project_onto_polyline
+from kf_train.io.track_geometry import TrackError, TrackGeometry
+import numpy as np
+
+JOIN_TOLERANCE_M = 1.0
+MATCH_SIGMA_M = 10.0
+MATCH_CAP_M = 40.0
+SWITCH_COST = 5.0
+MAX_HOPS = 3
+
+
+def is_network_file(path) -> bool:
+    """Return whether a file is a GeoJSON FeatureCollection of more than one LineString."""
+    try:
+        document = json.loads(Path(path).read_text(encoding='utf-8'))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(document, dict) or document.get('type') != 'FeatureCollection':
+        return False
+    return sum((f.get('geometry') or {}).get('type') == 'LineString'
+               for f in document.get('features') or [] if isinstance(f, dict)) > 1
+
+
+def _elements(document: dict) -> Tuple[List[str], List[np.ndarray], List[dict]]:
+    """Return the ids, lon/lat vertices of the LineStrings and the netrelation properties."""
+    ids, lines, relations = [], [], []
+    for index, feature in enumerate(document.get('features') or []):
+        geometry, properties = feature.get('geometry') or {}, feature.get('properties') or {}
+        if geometry.get('type') == 'LineString':
+            ids.append(str(properties.get('id', index)))
+            lines.append(np.asarray(geometry['coordinates'], dtype=float)[:, :2])
+        elif properties.get('type') == 'netrelation':
+            relations.append(properties)
+    if not lines:
+        raise TrackError('a network needs LineStrings')
+    return ids, lines, relations
+
+
+class TrackNetwork:
+    """Elements, their joins, and the path a series of fixes ran (see the module)."""
+
+    def __init__(self, document: dict) -> None:
+        """Build the network of a GeoJSON FeatureCollection (pyproj: the extra [track])."""
+        self.ids, self.lonlat, relations = _elements(document)
+        frame = TrackGeometry(np.concatenate(self.lonlat))      # one frame for all
+        self.frame = frame
+        self.lines_m = [frame.to_local(line[:, 1], line[:, 0]) for line in self.lonlat]
+        count = len(self.ids)
+        # joins[(element, end)] = [(element, end), ...]: ends 0 (first vertex) or 1.
+        self.joins: Dict[Tuple[int, int], List[Tuple[int, int]]] = {
+            (e, end): [] for e in range(count) for end in (0, 1)}
+        if relations:
+            index = {name: e for e, name in enumerate(self.ids)}
+            for r in relations:
+                a, b = index.get(str(r.get('netelementA'))), index.get(str(r.get('netelementB')))
+                if a is None or b is None or r.get('navigability') == 'none':
+                    continue
+                ends = (int(r.get('positionOnA', 1)), int(r.get('positionOnB', 0)))
+                self.joins[(a, ends[0])].append((b, ends[1]))
+                self.joins[(b, ends[1])].append((a, ends[0]))
+        else:
+            self._join_by_geometry()
+
+    @classmethod
+    def from_file(cls, path) -> 'TrackNetwork':
+        """Read a network GeoJSON file."""
+        return cls(json.loads(Path(path).read_text(encoding='utf-8')))
+
+    def _end(self, e: int, end: int) -> Tuple[np.ndarray, np.ndarray]:
+        """Return an element end's point and the unit direction leaving it into the element."""
+        line = self.lines_m[e] if end == 0 else self.lines_m[e][::-1]
+        step = line[1] - line[0]
+        return line[0], step / max(np.hypot(*step), 1e-12)
+
+    def _join_by_geometry(self) -> None:
+        """Join ends that meet, where the elements leave the point in opposite directions."""
+        ends = [(e, end) for e in range(len(self.ids)) for end in (0, 1)]
+        for i, first in enumerate(ends):
+            point, out = self._end(*first)
+            for second in ends[i + 1:]:
+                if second[0] == first[0]:
+                    continue
+                other, other_out = self._end(*second)
+                if np.hypot(*(point - other)) <= JOIN_TOLERANCE_M and out @ other_out < 0.0:
+                    self.joins[first].append(second)
+                    self.joins[second].append(first)
+
+    def _successors(self, state: int) -> List[int]:
+        """Return the states one element on: state = 2 element + direction (1: reversed)."""
+        e, direction = divmod(state, 2)
+        exit_end = 1 - direction                   # run forwards: leaves by its end 1
+        return [2 * f + (1 if entry_end == 1 else 0) for f, entry_end in self.joins[(e, exit_end)]]
+
+    def _hops(self) -> np.ndarray:
+        """Return the fewest elements entered from each state to each (inf: beyond MAX_HOPS)."""
+        count = 2 * len(self.ids)
+        hops = np.full((count, count), np.inf)
+        np.fill_diagonal(hops, 0.0)
+        for start in range(count):
+            frontier = [start]
+            for hop in range(1, MAX_HOPS + 1):
+                frontier = [s for f in frontier for s in self._successors(f)
+                            if hops[start, s] == np.inf]
+                for s in frontier:
+                    hops[start, s] = hop
+        return hops
+
+    def match(self, lat_deg: Sequence[float], lon_deg: Sequence[float]) -> List[Tuple[str, bool]]:
+        """Return the path of the fixes: (element id, run reversed) in travel order."""
+        points = self.frame.to_local(lat_deg, lon_deg)
+        distance = np.column_stack([np.abs(project_onto_polyline(points, line)[1])
+                                    for line in self.lines_m])
+        emission = -0.5 * (np.minimum(distance, MATCH_CAP_M) / MATCH_SIGMA_M) ** 2
+        emission = np.repeat(emission, 2, axis=1)               # both directions alike
+        transition = -SWITCH_COST * self._hops()                 # -inf beyond reach
+        score = emission[0].copy()
+        back = np.zeros(emission.shape, dtype=np.int32)
+        for k in range(1, len(points)):
+            total = score[:, None] + transition
+            back[k] = np.argmax(total, axis=0)
+            score = total[back[k], np.arange(total.shape[1])] + emission[k]
+        states = [int(np.argmax(score))]
+        for k in range(len(points) - 1, 0, -1):
+            states.append(int(back[k, states[-1]]))
+        return self._chain(states[::-1])
+
+    def _chain(self, states: List[int]) -> List[Tuple[str, bool]]:
+        """Return the elements of a state sequence, the skipped ones between filled in."""
+        path = [states[0]]
+        for state in states[1:]:
+            if state != path[-1]:
+                path += self._between(path[-1], state) + [state]
+        return [(self.ids[s // 2], bool(s % 2)) for s in path]
+
+    def _between(self, start: int, goal: int) -> List[int]:
+        """Return the states entered on the fewest-elements way from start to goal, exclusive."""
+        previous = {start: None}
+        frontier = [start]
+        while frontier and goal not in previous:
+            following = []
+            for f in frontier:
+                for s in self._successors(f):
+                    if s not in previous:
+                        previous[s] = f
+                        following.append(s)
+            frontier = following
+        way, state = [], previous.get(goal)
+        while state is not None and state != start:
+            way.append(state)
+            state = previous[state]
+        return way[::-1]
+
+    def path_lonlat(self, path: Sequence[Tuple[str, bool]]) -> np.ndarray:
+        """Return the (M, 2) lon/lat line of a path: its elements chained in travel order."""
+        index = {name: e for e, name in enumerate(self.ids)}
+        parts = [self.lonlat[index[name]][::-1] if reverse else self.lonlat[index[name]]
+                 for name, reverse in path]
+        return np.concatenate([parts[0]] + [part[1:] for part in parts[1:]])
