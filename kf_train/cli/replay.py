@@ -41,6 +41,9 @@ With an ``id`` column, linear presets run as a vectorised bank
 along their own time axis); the results equal filtering each id alone. The EKF preset
 and ``--filter`` run id by id.
 
+Without ``--preset`` or ``--config`` a table runs the estimator node's default preset
+(:data:`kf_train.estimator.DEFAULT_PRESET`, ``rail``), as a bag replay does.
+
 ``--preset rail`` (or a ``--config`` file with ``model: rail_regimes``) runs the rail
 IMM (docs/rail.md) row by row, started by each id's first row as the streaming
 estimator's default is (:mod:`kf_train.batch.rail_series`); ``--filter`` kf or ekf
@@ -71,11 +74,12 @@ from typing import List, Optional
 from kf_train.batch import RailSeriesFilter
 from kf_train.cli.engine_options import add_engine_options, check_engine_options
 from kf_train.cli.filter_options import add_filter_options, filter_options
-from kf_train.estimator import RAIL_FILTER_KINDS
+from kf_train.estimator import DEFAULT_PRESET, RAIL_FILTER_KINDS
 from kf_train.filters import Filter, FILTER_KINDS, make_filter
 from kf_train.io import is_bag
 from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset, SPEED_COLUMN
-from kf_train.replay import collector_frozen, input_columns, load_any_preset, run_engine
+from kf_train.replay import (
+    collector_frozen, input_columns, is_parquet, load_any_preset, run_engine)
 import numpy as np
 
 EXIT_OK = 0
@@ -111,7 +115,8 @@ def _parser() -> argparse.ArgumentParser:
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME',
                         choices=available_presets() + [RAIL_PRESET_NAME],
-                        help='a shipped preset: %(choices)s')
+                        help='a shipped preset: %(choices)s (default, without --config: '
+                             f"the estimator node's default, {DEFAULT_PRESET})")
     source.add_argument('--config', metavar='FILE', help='a preset YAML file of your own')
     parser.add_argument('--output', '-o', metavar='OUTPUT',
                         help='where to write the estimates: CSV, a .parquet file or a '
@@ -162,10 +167,11 @@ def main(argv: Optional[List[str]] = None) -> int:
         return EXIT_OK
     if args.input is not None and args.input != '-' and (
             is_bag(args.input) or (args.preset is None and args.config is None
-                                   and not args.input.lower().endswith('.csv'))):
+                                   and not args.input.lower().endswith('.csv')
+                                   and not is_parquet(args.input))):
         return _bag_main(parser, args)
     if args.preset is None and args.config is None:
-        parser.error('one of --preset NAME or --config FILE is required')
+        args.preset = DEFAULT_PRESET   # the node's default preset, as a bag replay runs
     if args.input is None or args.output is None:
         parser.error('INPUT and --output OUTPUT are required')
     for option in ('params_file', 'parameter', 'topic', 'control_topic', 'velocity_topic'):

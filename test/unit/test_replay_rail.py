@@ -8,7 +8,7 @@ import shutil
 from kf_train.batch import RailSeriesFilter
 from kf_train.cli.compare import format_table
 from kf_train.cli.replay import main
-from kf_train.estimator import EstimatorSettings, StreamEstimator
+from kf_train.estimator import DEFAULT_PRESET, EstimatorSettings, StreamEstimator
 from kf_train.evaluate import run_comparison
 from kf_train.presets import load_rail_preset, RAIL_PRESET_PATH
 from kf_train.sim import family_parameters, rail_scenario
@@ -87,12 +87,22 @@ def test_a_rail_preset_file_and_the_id_column(run_csv, tmp_path):
     np.testing.assert_allclose(both[1::2, 1], alone[:, 1] + 500.0, rtol=0, atol=1e-9)
 
 
+def test_a_table_without_a_preset_runs_the_node_default(run_csv, tmp_path):
+    """No --preset: the node's default preset (rail), as a bag replay; CSV and Parquet."""
+    path, _, _, _ = run_csv
+    assert DEFAULT_PRESET == 'rail'     # else name the new default's preset below
+    assert main([str(path), '-o', str(tmp_path / 'default.csv')]) == 0
+    assert main(['--preset', 'rail', str(path), '-o', str(tmp_path / 'rail.csv')]) == 0
+    assert (tmp_path / 'default.csv').read_bytes() == (tmp_path / 'rail.csv').read_bytes()
+    assert main(['--preset', 'train', str(path), '-o', str(tmp_path / 'train.csv')]) == 0
+    assert (tmp_path / 'train.csv').read_bytes() != (tmp_path / 'rail.csv').read_bytes()
+
+
 def test_parquet_input_is_the_csv_replay(run_csv, tmp_path):
     pl = pytest.importorskip('polars')
     path, _, _, _ = run_csv
     pl.read_csv(path).write_parquet(tmp_path / 'in.parquet')
-    assert main(['--preset', 'rail', str(tmp_path / 'in.parquet'),
-                 '-o', str(tmp_path / 'p.csv')]) == 0
+    assert main([str(tmp_path / 'in.parquet'), '-o', str(tmp_path / 'p.csv')]) == 0
     assert main(['--preset', 'rail', str(path), '-o', str(tmp_path / 'c.csv')]) == 0
     assert (tmp_path / 'p.csv').read_bytes() == (tmp_path / 'c.csv').read_bytes()
 
