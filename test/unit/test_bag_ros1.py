@@ -6,6 +6,7 @@ from kf_train.cli import main as kf_train_main
 from kf_train.io import is_bag
 from kf_train.io.bagio_types import POSE, TWIST_COVARIANCE
 import numpy as np
+import pytest
 from rosbags.rosbag1 import Writer as Ros1Writer
 from rosbags.rosbag2 import Writer as Ros2Writer
 from rosbags.typesys import get_typestore, Stores
@@ -105,3 +106,17 @@ def test_a_damaged_ros1_bag_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and 'bad.bag' in err
     assert not (tmp_path / 'o.csv').exists()
+
+
+def test_plot_a_bag_replay_with_the_bag_as_input(tmp_path, capsys):
+    """kf-train plot --replay OUT.csv --input BAG: the fixes come from the replayed bag."""
+    pytest.importorskip('matplotlib')
+    from kf_train.plots.figures import _bag_fixes
+    bag = _write_ros1(tmp_path / 'run.bag')
+    assert kf_train_main(['replay', str(bag), '-o', str(tmp_path / 'out.csv')]) == 0
+    times, positions = _bag_fixes(str(bag))
+    assert times.shape == (150,) and times[0] == PERIOD_NS / NS     # the header stamps
+    assert kf_train_main(['plot', '--replay', str(tmp_path / 'out.csv'), '--input', str(bag),
+                          '-o', str(tmp_path)]) == 0
+    (path,) = capsys.readouterr().out.split()
+    assert path.endswith('out.png') and (tmp_path / 'out.png').stat().st_size > 10_000
