@@ -43,7 +43,8 @@ def _parser() -> argparse.ArgumentParser:
                              'on a metro run)')
     parser.add_argument('--seed', metavar='N', type=int, default=0,
                         help='random seed of the simulated noise (default 0)')
-    parser.add_argument('--replay', metavar='OUT.csv', help='draw this replay output')
+    parser.add_argument('--replay', metavar='OUT', help='draw this replay output (a CSV, or '
+                        "a bag replay's output bag: a directory or .mcap)")
     parser.add_argument('--input', metavar='IN',
                         help='with --replay: the replay input, for the measurements (a CSV, '
                              "or the replayed bag for a bag replay's output)")

@@ -293,6 +293,8 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
     :mod:`kf_train.plots.replay_figure` (``input_csv`` may then be the replayed bag);
     ``horizon_s`` None is the estimator's default preset's.
     """
+    if is_bag(replay_csv):      # a bag replay's output bag: its estimates, as its CSV's
+        return [_prediction_figure(output_dir, replay_csv, None, input_csv, horizon_s)]
     header = _csv_header(replay_csv)
     if 'predicted_position' in header and 'nis' in header:
         return [_prediction_figure(output_dir, replay_csv, header, input_csv, horizon_s)]
@@ -351,17 +353,21 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
     return paths
 
 
-def _prediction_figure(output_dir: str, replay_csv: str, header: List[str],
+def _prediction_figure(output_dir: str, replay_csv: str, header: Optional[List[str]],
                        input_path: Optional[str], horizon_s: Optional[float]) -> str:
-    """Draw the prediction figure of a replay output; return its path."""
+    """Draw the prediction figure of a replay output (CSV, or bag: no header); return it."""
     from kf_train.plots.replay_figure import replay_figure, replay_series
     if horizon_s is None:
         horizon_s = resolve_preset(DEFAULT_PRESET).horizon_s
-    columns = _number_columns(replay_csv, header)
+    if header is None:
+        from kf_train.io import bagio_output
+        columns = bagio_output.read_output_bag(replay_csv)
+    else:
+        columns = _number_columns(replay_csv, header)
     fixes = None
     if input_path is not None:
         fixes = _bag_fixes(input_path) if is_bag(input_path) else _table_fixes(input_path)
-    base = os.path.splitext(os.path.basename(replay_csv))[0]
+    base = os.path.splitext(os.path.basename(replay_csv.rstrip(os.sep)))[0]
     series = replay_series(columns, horizon_s, fixes)
     return save(replay_figure(f'{base}: where the prediction fails, and why', series,
                               horizon_s), os.path.join(output_dir, base + '.png'))

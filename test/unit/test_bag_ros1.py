@@ -120,3 +120,27 @@ def test_plot_a_bag_replay_with_the_bag_as_input(tmp_path, capsys):
                           '-o', str(tmp_path)]) == 0
     (path,) = capsys.readouterr().out.split()
     assert path.endswith('out.png') and (tmp_path / 'out.png').stat().st_size > 10_000
+
+
+def test_an_output_bag_reads_as_the_csv(tmp_path, capsys):
+    """The output bag's columns (read for kf-train plot) are the CSV output's numbers."""
+    pytest.importorskip('matplotlib')
+    from kf_train.io.bagio_output import read_output_bag
+    bag = _write_ros1(tmp_path / 'run.bag')
+    assert kf_train_main(['replay', str(bag), '-o', str(tmp_path / 'out.csv')]) == 0
+    assert kf_train_main(['replay', str(bag), '-o', str(tmp_path / 'out.mcap')]) == 0
+    columns = read_output_bag(tmp_path / 'out.mcap')
+    with open(tmp_path / 'out.csv') as stream:
+        header = stream.readline().strip().split(',')
+        rows = np.array([[float(c) if c else np.nan for c in line.strip().split(',')]
+                         for line in stream])
+    for name, values in columns.items():
+        expected = rows[:, header.index(name)]
+        if name == 't':     # stamps as sec + nanosec / 1e9 against ns / 1e9: to 1 ulp
+            np.testing.assert_allclose(values, expected, rtol=1e-15, atol=0)
+        else:
+            np.testing.assert_array_equal(values, expected, err_msg=name)
+    assert 'p_stand' in columns and 'nis' in columns
+    assert kf_train_main(['plot', '--replay', str(tmp_path / 'out.mcap'), '--input', str(bag),
+                          '-o', str(tmp_path)]) == 0
+    assert capsys.readouterr().out.split()[-1].endswith('out.png')
