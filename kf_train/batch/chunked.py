@@ -35,11 +35,14 @@ from kf_train.batch.linear import run_linear_series
 from kf_train.batch.series import (
     filter_rows, MAX_ABS_TIME_S, run_series, SeriesError, without_gaps)
 from kf_train.filters import (
-    as_covariance, as_finite_array, as_vector, NS_PER_S, seconds_to_ns, seconds_to_ns_array)
+    as_covariance, as_finite_array, as_vector, NS_PER_S, regime_columns, seconds_to_ns,
+    seconds_to_ns_array)
 import numpy as np
 
 # The last output column of an input with gaps: 1.0 updated, 0.0 predicted only.
 UPDATED_COLUMN = 'updated'
+# A filter with regimes: the NIS of the row's position (as the bag replay's CSV names it).
+NIS_COLUMN = 'nis'
 # Rows filtered together: big enough for the vectorised paths to run at full speed,
 # small enough that a block's work arrays stay far below the memory budget.
 DEFAULT_BLOCK_ROWS = 65536
@@ -109,6 +112,8 @@ class Estimates(NamedTuple):
     predicted_P: Optional[np.ndarray]
     updated: Optional[np.ndarray] = None
     """1.0 where the row was updated, 0.0 where it had no measurement (a stream with gaps)."""
+    regimes: Optional[np.ndarray] = None
+    """A preset with regimes (rail): (N, modes + 1), the probabilities, then the NIS."""
 
 
 class OutputBlock(NamedTuple):
@@ -134,7 +139,8 @@ def output_header(preset, horizon: Optional[float], smooth: bool,
     """
     Return the output columns after the id: t, states, variances, predicted, smoothed.
 
-    With ``gaps`` (an input with rows without a measurement) a last column ``updated``.
+    A preset with regimes (rail) adds ``p_<regime>`` for each and ``nis``; with ``gaps``
+    (an input with rows without a measurement) a last column ``updated``.
     """
     names = preset.state_names
     header = ['t']
@@ -142,7 +148,14 @@ def output_header(preset, horizon: Optional[float], smooth: bool,
     for prefix in prefixes:
         header += [prefix + name for name in names]
         header += ['var_' + prefix + name for name in names]
+    if has_regimes(preset):
+        header += regime_columns(preset.mode_names) + [NIS_COLUMN]
     return header + ([UPDATED_COLUMN] if gaps else [])
+
+
+def has_regimes(preset) -> bool:
+    """Return whether a preset's filter has regimes (the rail IMM), as its outputs show."""
+    return bool(getattr(preset, 'mode_names', ()))
 
 
 def estimate_columns(est: Estimates, smoothed=None) -> List[np.ndarray]:
@@ -157,6 +170,8 @@ def estimate_columns(est: Estimates, smoothed=None) -> List[np.ndarray]:
         n = x.shape[1]
         columns += [x[:, i] for i in range(n)]
         columns += [P[:, i, i] if P.ndim == 3 else P[:, i] for i in range(n)]
+    if est.regimes is not None:
+        columns += list(est.regimes.T)
     if est.updated is not None:
         columns.append(est.updated)
     return columns
@@ -271,10 +286,12 @@ def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
         missing = None      # it takes every row, its empty cells NaN (RailSeriesFilter)
     else:
         z, missing = without_gaps(z, missing)
+    regimes = np.empty((dt.shape[0], len(filt.mode_names) + 1)) \
+        if has_regimes(filt.preset) else None
     out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon,
-                                                                 missing)
+                                                                 missing, regimes)
     return Estimates(t, out_x, out_P, prior_x, prior_P, filt.preset.dynamics.F_batch(dt),
-                     pred_x, pred_P)
+                     pred_x, pred_P, regimes=regimes)
 
 
 class BlockFilter:
@@ -348,6 +365,8 @@ class BlockFilter:
                np.empty((N, n)) if self.horizon else None,
                np.empty((N, n, n)) if self.horizon else None)
         alone = np.arange(objects.shape[0])
+        regimes = np.empty((N, len(self.preset.mode_names) + 1)) \
+            if has_regimes(self.preset) else None
         if self.filt is None and self.preset.linear:
             alone, together = _split_objects(groups)      # the bank's own cost model
             if missing is not None and together.size:     # objects with gaps: alone
@@ -370,10 +389,13 @@ class BlockFilter:
                                         None if missing is None else missing[rows])
             except SeriesError as error:
                 raise SeriesError(int(rows[error.row]), error.reason) from None
-            for array, value in zip(out, est[1:5] + est[6:]):
+            for array, value in zip(out, est[1:5] + est[6:8]):
                 if array is not None:
                     array[rows] = value
-        return Estimates(t, *out[:4], self.preset.dynamics.F_batch(dt), *out[4:])
+            if regimes is not None:
+                regimes[rows] = est.regimes
+        return Estimates(t, *out[:4], self.preset.dynamics.F_batch(dt), *out[4:],
+                         regimes=regimes)
 
     def _object_rows(self, obj: int, t, dt, z, u, missing=None) -> Estimates:
         """Filter one object's rows of a block alone."""

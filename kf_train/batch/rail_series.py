@@ -32,7 +32,7 @@ import math
 from typing import Dict, Optional, Tuple
 
 from kf_train.filters import (
-    as_covariance, as_duration, as_vector, IMMFilter, UpdateResult)
+    as_covariance, as_duration, as_vector, IMMFilter, regime_columns, UpdateResult)
 from kf_train.presets import RailPreset, SPEED_VARIANCE_COLUMN
 import numpy as np
 
@@ -57,6 +57,8 @@ class RailSeriesFilter:
         self._prior: Tuple[np.ndarray, np.ndarray] = (preset.initial_state,
                                                       preset.initial_covariance)
         self._running: Optional[IMMFilter] = None
+        self.position_nis = math.nan
+        """The NIS of the last update's position (NaN: it fused none, or started the filter)."""
 
     @property
     def mode_names(self) -> Tuple[str, ...]:
@@ -91,6 +93,7 @@ class RailSeriesFilter:
         P0 = as_covariance('P0', self.preset.initial_covariance if P0 is None else P0, n)
         self._prior = (x0, P0.copy())
         self._running = None
+        self.position_nis = math.nan
 
     def predict(self, dt_s: float, u=None) -> None:
         """Propagate over dt_s (nothing to propagate before the first measurement)."""
@@ -107,6 +110,7 @@ class RailSeriesFilter:
         With speeds z is (position, speed, its variance), NaN where a cell was empty:
         the position first, then the speed (the speed's result is returned).
         """
+        self.position_nis = math.nan
         if not self.preset.speed:
             return self._update_position(as_vector('z', z, 1), R)
         position, speed, variance = np.asarray(z, dtype=float).reshape(3).tolist()
@@ -137,7 +141,9 @@ class RailSeriesFilter:
             P[0, 0] = R[0, 0]
             self._running = IMMFilter(self.imm, x, P)
             return None
-        return self._running.update(z, R)
+        result = self._running.update(z, R)
+        self.position_nis = result.nis
+        return result
 
     def predict_ahead(self, dt_s: float, u=None) -> Tuple[np.ndarray, np.ndarray]:
         """Return the mixture dt_s ahead (no regime reverses); the filter is unchanged."""
@@ -171,5 +177,5 @@ class RailSeriesFilter:
 
     def diagnostics(self) -> Dict[str, float]:
         """Return the regime probabilities by name (p_stand, ...)."""
-        return {f'p_{name}': float(p)
-                for name, p in zip(self.mode_names, self.mode_probabilities)}
+        return {column: float(p)
+                for column, p in zip(regime_columns(self.mode_names), self.mode_probabilities)}

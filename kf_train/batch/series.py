@@ -183,13 +183,15 @@ def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None
                         preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P)
 
 
-def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None):
+def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None, regimes=None):
     """
     Predict and update ``filt`` row by row from its current state (no reset).
 
     Return (posterior x, P, prior x, P, predicted x, P), the predictions None without a
     horizon; a step's ValueError becomes a SeriesError naming the row. Rows flagged in
-    ``missing`` are predicted, not updated.
+    ``missing`` are predicted, not updated. ``regimes`` (N, 1 + modes), for a filter of
+    regimes (:class:`~kf_train.batch.RailSeriesFilter`), receives each row's regime
+    probabilities and the NIS of its position (NaN where the row fused none).
     """
     N = dt.shape[0]
     out_x, out_P, prior_x, prior_P, pred_x, pred_P = series_outputs(
@@ -199,11 +201,15 @@ def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None):
         try:
             filt.predict(dt[k], u_k)
             prior_x[k], prior_P[k] = filt.mean, filt.covariance
-            if missing is None or not missing[k]:
+            updated = missing is None or not missing[k]
+            if updated:
                 filt.update(z[k])
             out_x[k], out_P[k] = filt.mean, filt.covariance
             if horizon_s:
                 pred_x[k], pred_P[k] = filt.predict_ahead(horizon_s, u_k)
+            if regimes is not None:
+                regimes[k, :-1] = filt.mode_probabilities
+                regimes[k, -1] = filt.position_nis if updated else np.nan
         except ValueError as error:
             raise SeriesError(k, str(error)) from None
     return out_x, out_P, prior_x, prior_P, pred_x, pred_P

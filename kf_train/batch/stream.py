@@ -149,9 +149,11 @@ def filter_table(preset, t, z, u=None, codes: Optional[Sequence[int]] = None, *,
     row, or None) flags rows without a measurement; given, the last column is
     ``updated`` (see :class:`StreamingReplay`).
     """
+    owner = preset if filt is None else filt.preset
     t = np.asarray(t, dtype=float).reshape(-1)
-    z = np.asarray(z, dtype=float).reshape(t.shape[0], -1)
-    u = None if u is None else np.asarray(u, dtype=float).reshape(t.shape[0], -1)
+    # The widths from the preset: an empty partition has no row to infer them from.
+    z = np.asarray(z, dtype=float).reshape(t.shape[0], owner.dim_z)
+    u = None if u is None else np.asarray(u, dtype=float).reshape(t.shape[0], owner.dim_u)
     codes = None if codes is None else np.asarray(codes, dtype=np.int64).reshape(-1)
     if missing is not None:
         missing = np.asarray(missing, dtype=bool).reshape(-1)

@@ -29,7 +29,11 @@ def _parser() -> argparse.ArgumentParser:
                "range-bearing_track.png (the x-y track) and, for train, seed 000's three "
                'figures seed000_position.png, seed000_velocity.png and '
                'seed000_extrapolation.png. With --replay OUT.csv: draws a kf-train replay '
-               'output, and the measurements of --input IN.csv.')
+               'output, and the measurements of --input IN.csv; an output with a '
+               'prediction and nis (rail, a bag replay) as four panels: the prediction '
+               'error against the later fix with its ±2σ band, the regime probabilities, '
+               'the NIS with its bounds, and a zoom on the longest standstill; time from '
+               'the start in s.')
     parser.add_argument('--output-dir', '-o', metavar='DIR', default='.',
                         help='where to write the PNGs (default: the current directory)')
     parser.add_argument('--preset', metavar='NAME', action='append',
@@ -39,9 +43,14 @@ def _parser() -> argparse.ArgumentParser:
                              'on a metro run)')
     parser.add_argument('--seed', metavar='N', type=int, default=0,
                         help='random seed of the simulated noise (default 0)')
-    parser.add_argument('--replay', metavar='OUT.csv', help='draw this replay output')
-    parser.add_argument('--input', metavar='IN.csv',
-                        help='with --replay: the replay input, for the measurements')
+    parser.add_argument('--replay', metavar='OUT', help='draw this replay output (a CSV, or '
+                        "a bag replay's output bag: a directory or .mcap)")
+    parser.add_argument('--input', metavar='IN',
+                        help='with --replay: the replay input, for the measurements (a CSV, '
+                             "or the replayed bag for a bag replay's output)")
+    parser.add_argument('--horizon', metavar='S', type=float, default=None,
+                        help='with --replay: the prediction horizon of the output [s] '
+                             "(default: the estimator's default preset's)")
     return parser
 
 
@@ -55,9 +64,12 @@ def main(argv: Optional[List[str]] = None) -> int:
         parser.error('--input goes with --replay')
     if args.replay and args.preset:
         parser.error('--preset does not apply to --replay')
+    if args.horizon is not None and not (args.replay and 0.0 < args.horizon < float('inf')):
+        parser.error('--horizon S (> 0) goes with --replay')
     try:
         if args.replay:
-            paths = replay_figure_paths(args.output_dir, args.replay, args.input)
+            paths = replay_figure_paths(args.output_dir, args.replay, args.input,
+                                        horizon_s=args.horizon)
         else:
             paths = []
             for name in args.preset or available_presets():

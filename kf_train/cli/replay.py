@@ -1,7 +1,8 @@
 """
 ``kf-train replay``: a preset's filter over a CSV or Parquet table (or a bag), offline.
 
-A rosbag2 INPUT goes to :mod:`kf_train.replay.bag` (the estimator node's session).
+A bag INPUT (rosbag2, or a ROS 1 ``.bag``) goes to :mod:`kf_train.replay.bag` (the
+estimator node's session).
 
 The command streams (:mod:`kf_train.replay.stream`: any size in bounded memory,
 CSV or Parquet) unless ``--engine memory`` asks for
@@ -32,7 +33,9 @@ Each row: predict from its id's previous time to ``t``, then update. Output CSV:
 horizon applies (the preset's, or ``--horizon S``) ``predicted_<state>`` and
 ``var_predicted_<state>`` at t + S (the row's control held over the horizon), and with
 ``--smooth`` the RTS-smoothed ``smoothed_<state>`` and ``var_smoothed_<state>`` (per
-id), one output row per input row, in the input's order. Numbers are written exactly
+id), for the rail preset its regime probabilities ``p_<regime>`` and ``nis`` (of the
+row's position; NaN where it fused none), one output row per input row, in the input's
+order. Numbers are written exactly
 as Python's shortest round-trip ``repr`` writes them (:mod:`kf_train.io.csvio`
 produces the same text in bulk): reading them back gives the computed doubles exactly.
 
@@ -40,6 +43,9 @@ With an ``id`` column, linear presets run as a vectorised bank
 (:func:`kf_train.batch.bank.run_bank`: ids with few rows in lock-step, ids with many
 along their own time axis); the results equal filtering each id alone. The EKF preset
 and ``--filter`` run id by id.
+
+Without ``--preset`` or ``--config`` a table runs the estimator node's default preset
+(:data:`kf_train.estimator.DEFAULT_PRESET`, ``rail``), as a bag replay does.
 
 ``--preset rail`` (or a ``--config`` file with ``model: rail_regimes``) runs the rail
 IMM (docs/rail.md) row by row, started by each id's first row as the streaming
@@ -71,11 +77,12 @@ from typing import List, Optional
 from kf_train.batch import RailSeriesFilter
 from kf_train.cli.engine_options import add_engine_options, check_engine_options
 from kf_train.cli.filter_options import add_filter_options, filter_options
-from kf_train.estimator import RAIL_FILTER_KINDS
+from kf_train.estimator import DEFAULT_PRESET, RAIL_FILTER_KINDS
 from kf_train.filters import Filter, FILTER_KINDS, make_filter
 from kf_train.io import is_bag
 from kf_train.presets import available_presets, RAIL_PRESET_NAME, RailPreset, SPEED_COLUMN
-from kf_train.replay import collector_frozen, input_columns, load_any_preset, run_engine
+from kf_train.replay import (
+    collector_frozen, input_columns, is_parquet, load_any_preset, run_engine)
 import numpy as np
 
 EXIT_OK = 0
@@ -90,8 +97,9 @@ def _parser() -> argparse.ArgumentParser:
         description='Run a filter over recorded measurements, offline. INPUT is a CSV or '
                     'Parquet table (a preset filter, any size, streamed in blocks; '
                     'estimates to CSV or Parquet) or a rosbag2 bag: a directory (MCAP or '
-                    "sqlite3), .mcap or .db3 (the estimator node's own session and "
-                    'parameters; estimates to CSV, or to an MCAP bag of the node topics).',
+                    "sqlite3), .mcap or .db3, or a ROS 1 .bag (the estimator node's own "
+                    'session and parameters; estimates to CSV, or to an MCAP bag of the node '
+                    'topics).',
         epilog='Table input: a header, then rows with t [s], the measurements z_position, '
                'z_velocity, z_bearing [rad], z_range [m] the preset uses, and u when it '
                'has a control input (the control over the interval ending at the row); '
@@ -100,18 +108,21 @@ def _parser() -> argparse.ArgumentParser:
                'optionally id: each id is an independent object with its own series. '
                'Output: id (if given), t, each state by name, var_<state>; '
                'predicted_<state> and var_predicted_<state> at t + horizon; '
-               'smoothed_<state> and var_smoothed_<state> with --smooth. Presets: '
+               'smoothed_<state> and var_smoothed_<state> with --smooth; rail: '
+               'p_<regime> and nis. Presets: '
                + ', '.join(available_presets() + [RAIL_PRESET_NAME]) + ' (rail: the '
                'IMM of docs/rail.md, started by the first row). Bad input names the line '
                'and column, exits 1 and writes nothing.')
     parser.add_argument('input', metavar='INPUT', nargs='?',
                         help='measurements: CSV, a .parquet file or a directory of Parquet '
                              "files ('-' reads CSV from standard input), or a rosbag2 bag "
-                             '(a directory, .mcap or .db3): see the bag options')
+                             '(a directory, .mcap or .db3) or a ROS 1 .bag: see the bag '
+                             'options')
     source = parser.add_mutually_exclusive_group()
     source.add_argument('--preset', metavar='NAME',
                         choices=available_presets() + [RAIL_PRESET_NAME],
-                        help='a shipped preset: %(choices)s')
+                        help='a shipped preset: %(choices)s (default, without --config: '
+                             f"the estimator node's default, {DEFAULT_PRESET})")
     source.add_argument('--config', metavar='FILE', help='a preset YAML file of your own')
     parser.add_argument('--output', '-o', metavar='OUTPUT',
                         help='where to write the estimates: CSV, a .parquet file or a '
@@ -132,8 +143,9 @@ def _parser() -> argparse.ArgumentParser:
                              "preset's exact filter, vectorised where linear): %(choices)s")
     add_filter_options(parser)
     bag = parser.add_argument_group(
-        "bag replay (INPUT a rosbag2 directory, .mcap or .db3): the estimator node's own "
-        'session and parameters; --output X.csv, or a directory or X.mcap for a bag')
+        'bag replay (INPUT a rosbag2 directory, .mcap or .db3, or a ROS 1 .bag): the '
+        "estimator node's own session and parameters; --output X.csv, or a directory or "
+        'X.mcap for a bag')
     bag.add_argument('--params-file', metavar='FILE', action='append',
                      help='a ROS params file (node estimator); may be repeated')
     bag.add_argument('-p', dest='parameter', metavar='NAME:=VALUE', action='append',
@@ -169,10 +181,11 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.input is not None and args.input != '-' and (
             is_bag(args.input) or args.track is not None
             or (args.preset is None and args.config is None
-                and not args.input.lower().endswith('.csv'))):
+                and not args.input.lower().endswith('.csv')
+                and not is_parquet(args.input))):
         return _bag_main(parser, args)
     if args.preset is None and args.config is None:
-        parser.error('one of --preset NAME or --config FILE is required')
+        args.preset = DEFAULT_PRESET   # the node's default preset, as a bag replay runs
     if args.input is None or args.output is None:
         parser.error('INPUT and --output OUTPUT are required')
     for option in ('params_file', 'parameter', 'topic', 'control_topic', 'velocity_topic'):

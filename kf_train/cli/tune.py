@@ -65,7 +65,7 @@ def _parser() -> argparse.ArgumentParser:
                     'data do not carry it) and write them as a ROS params file.',
         epilog='Input: what kf-train replay reads: a CSV or Parquet (t, z_<measurement>, '
                'u, optional id, optional truth columns true_<state> for the prediction '
-               'RMSE), or a rosbag2 bag (a directory, .mcap or .db3: the '
+               'RMSE), or a bag (a rosbag2 directory, .mcap, .db3 or a ROS 1 .bag: the '
                'node measurement and control topics, truth from an Odometry topic). '
                'Needs scipy (pip install scipy).')
     parser.add_argument('input', metavar='INPUT',
@@ -102,7 +102,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument('--confidence', metavar='P', type=float, default=0.95,
                         help='confidence of the intervals (0.95)')
     add_rail_arguments(parser)
-    bag = parser.add_argument_group('bag input (a rosbag2 directory, .mcap or .db3)')
+    bag = parser.add_argument_group('bag input (a rosbag2 directory, .mcap or .db3, or a '
+                                    'ROS 1 .bag)')
     bag.add_argument('--topic', metavar='NAME', default=None,
                      help="the measurement topic (default: 'measurement' resolved in the "
                           'bag, else the only one of the expected type), as kf-train replay')

@@ -25,7 +25,7 @@ from kf_train.filters.family import (
 from kf_train.filters.fast import FastRun, FastTrainFilter
 from kf_train.filters.imm import (
     check_transition_matrix, combine, first_jump_row, FixedTransition, IMM, IMMFilter, IMMState,
-    make_state, RateTransition)
+    make_state, RateTransition, regime_columns)
 from kf_train.filters.kalman import KalmanFilter, LOG_2PI, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
@@ -72,7 +72,8 @@ __all__ = [
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
     'PredictThenUpdate',
     'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
-    'RateTransition', 'regularisation_jitter', 'RegularisedParticleFilter', 'RegularisedSnapshot',
+    'RateTransition', 'regime_columns', 'regularisation_jitter', 'RegularisedParticleFilter',
+    'RegularisedSnapshot',
     'robust_cholesky', 'seconds_to_ns', 'seconds_to_ns_array', 'Snapshot', 'SquareRoot',
     'STATE_NAMES', 'StepModel', 'stop_probability', 'STOPPING',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',

@@ -35,7 +35,7 @@ gets its exact probability.
 """
 
 import math
-from typing import Callable, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, List, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.filters import imm_stack
 from kf_train.filters.imm_stack import frozen as _frozen, LinearStack
@@ -52,6 +52,11 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     """Return ``array`` marked read-only (it is owned by an IMMState)."""
     array.flags.writeable = False
     return array
+
+
+def regime_columns(mode_names: Sequence[str]) -> List[str]:
+    """Return the names of the regime probabilities in outputs: ``p_<mode>`` per mode."""
+    return [f'p_{name}' for name in mode_names]
 
 
 class IMMState(NamedTuple):
@@ -574,5 +579,5 @@ class IMMFilter:
 
     def diagnostics(self):
         """Return the mode probabilities by name."""
-        return {f'p_{name}': float(p)
-                for name, p in zip(self.imm.mode_names, self._state.probabilities)}
+        columns = regime_columns(self.imm.mode_names)
+        return {column: float(p) for column, p in zip(columns, self._state.probabilities)}

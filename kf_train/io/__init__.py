@@ -45,8 +45,9 @@ __all__ = [
     'TrackGeometry', 'TrackNetwork', 'UTF8_BOM', 'write_atomic',
 ]
 
-# bagio_mcap and bagio_types, which the bag modules use, import rosbags too.
-_LAZY = ('bagio', 'bagio_mcap', 'bagio_output', 'bagio_simulation', 'bagio_types')
+# bagio_mcap, bagio_ros1 and bagio_types, which the bag modules use, import rosbags too.
+_LAZY = ('bagio', 'bagio_mcap', 'bagio_output', 'bagio_ros1', 'bagio_simulation',
+         'bagio_types')
 
 
 def __getattr__(name: str):

@@ -6,8 +6,9 @@ typestore holds the standard messages), so nothing here needs rclpy or a ROS ins
 ``pip install 'kf_train[bag]'``.
 
 Reading (:class:`BagInput`): a rosbag2 directory (MCAP or sqlite3 storage, with its
-metadata.yaml) or a single ``.mcap`` (or ``.db3``) file. Up to three topics are used,
-the rest is ignored:
+metadata.yaml), a single ``.mcap`` (or ``.db3``) file, or a ROS 1 ``.bag``
+(:mod:`kf_train.io.bagio_ros1`: the same messages, converted to CDR). Up to three
+topics are used, the rest is ignored:
 
 * the measurement topic, of the type the preset measures (:func:`expected_types`):
   geometry_msgs/msg/PoseWithCovarianceStamped for a position (``pose.pose.position.x``,
@@ -47,6 +48,7 @@ from typing import Callable, Dict, Iterator, NamedTuple, Optional, Sequence, Tup
 
 from kf_train.filters import NS_PER_S
 from kf_train.io.bagio_layout import FieldReader
+from kf_train.io.bagio_ros1 import ROS1_SUFFIX, Ros1Bag, Ros1ReaderError
 from kf_train.io.bagio_types import (
     ACCEL, CONTROL_TYPES, MEASUREMENT_TYPES, NAVSATFIX, ODOMETRY, POSE, TWIST, TWIST_COVARIANCE,
     TYPESTORE, VELOCITY_TYPES)
@@ -64,8 +66,8 @@ LISTED_TOPICS = 8
 # record length in an MCAP chunk overflows a seek (OverflowError) or a struct unpack
 # (struct.error), or trips one of rosbags' own asserts on the records it found; a file
 # cut right after its magic makes rosbags call ord() on an empty read (TypeError).
-_STORAGE_ERRORS = (ReaderError, OSError, KeyError, ValueError, EOFError, IndexError,
-                   OverflowError, struct.error, AssertionError, TypeError)
+_STORAGE_ERRORS = (ReaderError, Ros1ReaderError, OSError, KeyError, ValueError, EOFError,
+                   IndexError, OverflowError, struct.error, AssertionError, TypeError)
 
 
 class Measurement(NamedTuple):
@@ -334,17 +336,18 @@ class BagInput:
         self.close()
 
 
-def _open_reader(path: Path) -> Reader:
+def _open_reader(path: Path) -> Union[Reader, Ros1Bag]:
     """Return an open rosbags Reader for ``path``; one-line ValueError if it is no bag."""
     if not path.exists():
         raise ValueError(f'{path}: no such file or directory')
     if path.is_dir() and not (path / 'metadata.yaml').is_file():
         raise ValueError(f'{path}: not a rosbag2 directory (no metadata.yaml)')
-    if path.is_file() and path.suffix not in ('.mcap', '.db3'):
+    if path.is_file() and path.suffix not in ('.mcap', '.db3', ROS1_SUFFIX):
         raise ValueError(f'{path}: not a bag: expected a rosbag2 directory, a .mcap or a '
-                         f'.db3 file')
+                         f'.db3 file, or a ROS 1 .bag')
     try:
-        reader = Reader(path)
+        reader = Ros1Bag(path) if path.suffix == ROS1_SUFFIX and path.is_file() \
+            else Reader(path)
         reader.open()
     except (*_STORAGE_ERRORS, SerdeError) as error:
         text = ' '.join(str(error).split()) or type(error).__name__

@@ -27,7 +27,7 @@ import struct
 import tempfile
 from typing import Optional, Sequence, Tuple, Union
 
-from kf_train.filters import NS_PER_S
+from kf_train.filters import NS_PER_S, regime_columns
 from kf_train.io.bagio_diagnostics import DiagnosticsEncoder
 from kf_train.io.bagio_layout import PatchTemplate
 from kf_train.io.bagio_mcap import MessageAppender
@@ -295,3 +295,51 @@ def _check_target(path: Path, single_file: bool) -> None:
     if not single_file and path.exists():
         raise ValueError(f'cannot write {path}: it exists (a bag directory is never '
                          f'overwritten)')
+
+
+def read_output_bag(path: Union[str, Path]) -> dict:
+    """
+    Return the columns of an output bag as a replay CSV names them (one row per estimate).
+
+    ``t`` (the estimate's stamp [s]), ``position``, ``velocity`` and their ``var_``,
+    ``predicted_position`` and its variance, ``p_<regime>`` when the bag has
+    ``regime_probabilities`` (the k-th after the k-th estimate, as written), and ``nis``
+    of the innovation recorded with the estimate (NaN for none). One-line ValueError.
+    """
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+    from rosbags.serde import SerdeError
+    rows, regimes, names = [], [], ()
+    try:
+        with Reader(Path(path)) as reader:
+            for connection, record_ns, raw in reader.messages():
+                topic = connection.topic.rsplit('/', 1)[-1]
+                if topic not in ('estimate', 'prediction', 'innovation',
+                                 'regime_probabilities'):
+                    continue
+                message = TYPESTORE.deserialize_cdr(raw, connection.msgtype)
+                if topic == 'estimate':
+                    stamp = message.header.stamp
+                    rows.append([record_ns, stamp.sec + stamp.nanosec / NS_PER_S,
+                                 message.pose.pose.position.x, message.twist.twist.linear.x,
+                                 message.pose.covariance[0], message.twist.covariance[0],
+                                 np.nan, np.nan, np.nan])
+                elif topic == 'prediction' and rows:
+                    rows[-1][6:8] = [message.pose.pose.position.x, message.pose.covariance[0]]
+                elif topic == 'innovation' and rows and rows[-1][0] == record_ns:
+                    rows[-1][8] = message.vector.z
+                elif topic == 'regime_probabilities':
+                    names = tuple(message.layout.dim[0].label.split(','))
+                    regimes.append(message.data.tolist())
+    except (ReaderError, SerdeError, OSError, ValueError, KeyError, IndexError,
+            AttributeError, struct.error) as error:
+        raise ValueError(f'{path}: not a readable output bag: {error}') from None
+    if not rows:
+        raise ValueError(f'{path}: no estimate messages')
+    table = np.array(rows)
+    columns = dict(zip(['t', 'position', 'velocity', 'var_position', 'var_velocity',
+                        'predicted_position', 'var_predicted_position', 'nis'],
+                       table[:, 1:].T))
+    if regimes and len(regimes) == len(rows):
+        columns.update(zip(regime_columns(names), np.array(regimes).T))
+    return columns

@@ -15,8 +15,8 @@ from typing import Iterable
 
 
 def is_bag(path: str) -> bool:
-    """Return whether ``path`` names a bag (a .mcap or .db3 file, a directory), not a table."""
-    if path.endswith(('.mcap', '.db3')):
+    """Return whether ``path`` names a bag (.mcap, .db3, ROS 1 .bag, a directory), not a table."""
+    if path.endswith(('.mcap', '.db3', '.bag')):
         return True
     # A directory holding Parquet files is a dataset for the columnar path, not a bag.
     return os.path.isdir(path) and not glob.glob(os.path.join(path, '**', '*.parquet'),

@@ -5,6 +5,8 @@ matplotlib (the extra ``[plot]``) is imported when a figure is made
 (:func:`new_figure`), so importing this package does not need it.
 
 * :mod:`~kf_train.plots.figures`: the seeds' filters, a preset's scenario, a replay output;
+* :mod:`~kf_train.plots.replay_figure`: a replay with a prediction (error against the
+  later fix, regimes, NIS, the longest stop);
 * :mod:`~kf_train.plots.rail`: the rail IMM over a stop and a whole run;
 * :mod:`~kf_train.plots.rail_figure`: the rail demo's stop figure;
 * :mod:`~kf_train.plots.compare_figure`: ``kf-train compare``'s RMSE and ANEES.

@@ -21,12 +21,14 @@ input for the measurements): ``kf-train plot`` (:mod:`kf_train.cli.plotting`). m
 (the extra ``[plot]``) is imported when a figure is made.
 """
 
+import csv
 import os
 from typing import Dict, List, Optional, Sequence
 
 from kf_train.batch import run_series
-from kf_train.filters import as_duration, as_finite_array, as_vector, RangeBearing
-from kf_train.io import header_names, read_table
+from kf_train.estimator import DEFAULT_PRESET, resolve_preset
+from kf_train.filters import as_duration, as_finite_array, as_vector, NS_PER_S, RangeBearing
+from kf_train.io import header_names, ID_COLUMN, is_bag, read_table
 from kf_train.presets import load_preset, Preset
 from kf_train.sim import baselines, scenario_for_preset
 import numpy as np
@@ -283,9 +285,19 @@ def scenario_figures(output_dir: str, name: str, seed: int = 0) -> List[str]:
 # ---------------------------------------------------------------------------
 
 def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[str] = None,
-                        t0_s: float = 0.0) -> List[str]:
-    """Draw a ``kf-train replay`` output (and its input's measurements); return paths."""
+                        t0_s: float = 0.0, horizon_s: Optional[float] = None) -> List[str]:
+    """
+    Draw a ``kf-train replay`` output (and its input's measurements); return paths.
+
+    An output with ``predicted_position`` and ``nis`` (rail, a bag's) gets the figure of
+    :mod:`kf_train.plots.replay_figure` (``input_csv`` may then be the replayed bag);
+    ``horizon_s`` None is the estimator's default preset's.
+    """
+    if is_bag(replay_csv):      # a bag replay's output bag: its estimates, as its CSV's
+        return [_prediction_figure(output_dir, replay_csv, None, input_csv, horizon_s)]
     header = _csv_header(replay_csv)
+    if 'predicted_position' in header and 'nis' in header:
+        return [_prediction_figure(output_dir, replay_csv, header, input_csv, horizon_s)]
     states = [c for c in header if c != 't' and not c.startswith(
         ('var_', 'predicted_', 'smoothed_')) and 'var_' + c in header]
     if not states:
@@ -339,6 +351,69 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
                                        indices=indices),
                           os.path.join(output_dir, base + '_track.png')))
     return paths
+
+
+def _prediction_figure(output_dir: str, replay_csv: str, header: Optional[List[str]],
+                       input_path: Optional[str], horizon_s: Optional[float]) -> str:
+    """Draw the prediction figure of a replay output (CSV, or bag: no header); return it."""
+    from kf_train.plots.replay_figure import replay_figure, replay_series
+    if horizon_s is None:
+        horizon_s = resolve_preset(DEFAULT_PRESET).horizon_s
+    if header is None:
+        from kf_train.io import bagio_output
+        columns = bagio_output.read_output_bag(replay_csv)
+    else:
+        columns = _number_columns(replay_csv, header)
+    fixes = None
+    if input_path is not None:
+        fixes = _bag_fixes(input_path) if is_bag(input_path) else _table_fixes(input_path)
+    base = os.path.splitext(os.path.basename(replay_csv.rstrip(os.sep)))[0]
+    series = replay_series(columns, horizon_s, fixes)
+    return save(replay_figure(f'{base}: where the prediction fails, and why', series,
+                              horizon_s), os.path.join(output_dir, base + '.png'))
+
+
+def _number_columns(path: str, header: List[str]) -> Dict[str, np.ndarray]:
+    """Return a CSV's numeric columns by name (empty cells and 'nan' as NaN)."""
+    try:
+        with open(path, encoding='utf-8-sig', newline='') as stream:
+            rows = list(csv.reader(stream))[1:]
+    except OSError as error:
+        raise ValueError(f'{path}: cannot read: {error.strerror}') from None
+    columns = {}
+    for index, name in enumerate(header):
+        if name == ID_COLUMN:
+            if len({row[index] for row in rows}) > 1:
+                raise ValueError(f"{path}: several ids; plot one object's rows")
+            continue
+        try:
+            columns[name] = np.array([float(row[index]) if row[index] else np.nan
+                                      for row in rows])
+        except (ValueError, IndexError) as error:
+            raise ValueError(f'{path}: column {name!r}: {error}') from None
+    if not rows:
+        raise ValueError(f'{path}: no rows to draw')
+    return columns
+
+
+def _table_fixes(path: str):
+    """Return (t [s], z_position [m]) of a replay input table."""
+    header = _csv_header(path)
+    if 'z_position' not in header:
+        raise ValueError(f'{path}: no z_position column for the fixes')
+    columns = _number_columns(path, header)
+    return columns['t'], columns['z_position']
+
+
+def _bag_fixes(path: str):
+    """Return (stamps [s], positions [m]) of a bag's measurement topic (as replay reads)."""
+    from kf_train.io import bagio
+    stamps, positions = [], []
+    with bagio.BagInput(path) as bag:
+        for message in bag.messages():
+            stamps.append(message.stamp_ns)
+            positions.append(message.position_m)
+    return np.array(stamps, dtype=np.int64) / NS_PER_S, np.array(positions)
 
 
 def _csv_header(path: str) -> List[str]:

@@ -1,8 +1,9 @@
 """
 ``kf-train replay BAG``: run the estimator node's own session over a rosbag2 bag, offline.
 
-BAG is a rosbag2 directory (MCAP or sqlite3) or a single ``.mcap`` (or ``.db3``) file,
-read by :mod:`kf_train.io.bagio`. The estimator is configured exactly as the node is:
+BAG is a rosbag2 directory (MCAP or sqlite3), a single ``.mcap`` (or ``.db3``) file or
+a ROS 1 ``.bag`` (converted message by message: :mod:`kf_train.io.bagio_ros1`), read
+by :mod:`kf_train.io.bagio`. The estimator is configured exactly as the node is:
 ``--params-file FILE`` (ROS params format, the sections for node ``estimator``; may be
 repeated, later over earlier) and ``-p NAME:=VALUE`` overrides, the node's parameter
 names, defaults and validation (:mod:`kf_train.ros.estimator_params`). The bag's
@@ -29,7 +30,9 @@ Output (``--output``):
 
 * ``X.csv``: one row per published estimate: ``t`` (its stamp [s]), the state by name
   (``position``, ``velocity``), ``var_<state>``, ``predicted_<state>`` and
-  ``var_predicted_<state>`` (at t + horizon_s), ``nis`` (of the measurement that step
+  ``var_predicted_<state>`` (at t + horizon_s), for a preset with regimes (``rail``)
+  ``p_<regime>`` (the regime probabilities after the step, as the bag output's
+  ``regime_probabilities``), ``nis`` (of the measurement that step
   fused; empty when it fused none: the filter's initialisation, a correction after a
   late control, a speed). Numbers as Python's shortest round-trip ``repr``.
 * a directory or ``X.mcap``: a rosbag2 MCAP bag (:class:`kf_train.io.bagio_output.
@@ -47,7 +50,7 @@ import time
 from typing import Callable, Iterator, List, NamedTuple, Optional
 
 from kf_train.estimator import is_rail, resolve_preset
-from kf_train.filters import NS_PER_S
+from kf_train.filters import NS_PER_S, regime_columns
 from kf_train.io import bagio, bagio_output, check_output_path, csvio, Fix, write_atomic
 from kf_train.replay.progress import counted
 from kf_train.ros import estimator_params, param_spec, session as estimator_session
@@ -139,21 +142,22 @@ class BagRun:
                 yield record_ns, on_control(message, record_ns)
 
 
-def csv_header(state_names) -> List[str]:
-    """Return the CSV output's columns."""
+def csv_header(state_names, regime_names=()) -> List[str]:
+    """Return the CSV output's columns (``p_<regime>`` before ``nis`` as a table's)."""
     header = ['t']
     for prefix in ('', 'predicted_'):
         header += [prefix + name for name in state_names]
         header += ['var_' + prefix + name for name in state_names]
-    return header + ['nis']
+    return header + regime_columns(regime_names) + ['nis']
 
 
-def _csv_values(step, update, diagonal: slice) -> list:
+def _csv_values(step, update, diagonal: slice, regimes=()) -> list:
     """Return one CSV row's numbers for a published step (NaN for no nis)."""
     row = [step.stamp_ns / NS_PER_S] + step.x.tolist()
     row += step.P.ravel().tolist()[diagonal]
     row += step.predicted_x.tolist()
     row += step.predicted_P.ravel().tolist()[diagonal]
+    row += list(regimes)
     row.append(math.nan if update is None else update.nis)
     return row
 
@@ -180,8 +184,8 @@ def _csv_block(rows: list, no_nis: list) -> bytes:
 
 def _csv_chunks(run: BagRun, counts: dict) -> Iterator:
     """Yield the CSV output in chunks of lines."""
-    state_names = run.preset.state_names
-    yield ','.join(csv_header(state_names)) + '\n'
+    state_names, regime_names = run.preset.state_names, _regime_names(run.preset)
+    yield ','.join(csv_header(state_names, regime_names)) + '\n'
     diagonal = slice(None, None, len(state_names) + 1)   # P[i, i] of the flattened P
     rows, no_nis = [], []
     for _, outputs in run.outputs():
@@ -189,7 +193,8 @@ def _csv_chunks(run: BagRun, counts: dict) -> Iterator:
         if step is not None:
             if outputs.update is None:
                 no_nis.append(len(rows))
-            rows.append(_csv_values(step, outputs.update, diagonal))
+            regimes = run.session.estimator.mode_probabilities()[1] if regime_names else ()
+            rows.append(_csv_values(step, outputs.update, diagonal, regimes))
             if len(rows) >= CSV_ROWS_PER_CHUNK:
                 counts['estimates'] += len(rows)
                 yield _csv_block(rows, no_nis)
@@ -207,11 +212,15 @@ def write_csv(run: BagRun, path: str, counts: dict) -> None:
         raise ValueError(f'cannot write {path}: {error.strerror or error}') from None
 
 
+def _regime_names(preset) -> tuple:
+    """Return the regimes the outputs carry: the rail preset's, as the node publishes."""
+    return tuple(preset.mode_names) if is_rail(preset) else ()
+
+
 def write_bag(run: BagRun, path: str, counts: dict) -> None:
     """Replay into an MCAP bag at ``path`` (atomically)."""
     options = run.config.options
-    preset = run.preset
-    regimes = tuple(preset.mode_names) if is_rail(preset) else ()   # as the node writes
+    regimes = _regime_names(run.preset)
     with bagio_output.OutputBag(path, frame_id=options.frame_id,
                                 child_frame_id=options.child_frame_id,
                                 regime_names=regimes) as out:

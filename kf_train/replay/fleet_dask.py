@@ -115,7 +115,8 @@ def _write(estimates, output_path: str) -> int:
             ordered = estimates.map_partitions(lambda p: p.sort_values(
                 ['id', KEY], kind='stable')).drop(columns=[KEY])
             part = os.path.join(temporary, 'out.csv')
-            ordered.to_csv(part, single_file=True, index=False)
+            # NaN (a row's nis when it fused no position) as the other CSV writers: 'nan'.
+            ordered.to_csv(part, single_file=True, index=False, na_rep='nan')
             rows = int(dask.compute(ordered.map_partitions(len).sum())[0])
             os.replace(part, target)
             return rows

@@ -52,6 +52,22 @@ def test_dask_equals_the_single_process_replay(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ['in', 'in.csv', 'o.csv', 'one.csv', 'out']
 
 
+def test_dask_rail_writes_the_columns_of_every_other_path(tmp_path):
+    """The rail preset on Dask: the regimes and the NIS, equal to the single process."""
+    fleet = _fleet(trains=3, rows=100)
+    fleet.write_csv(tmp_path / 'in.csv')
+    assert main(['--preset', 'rail', str(tmp_path / 'in.csv'), '-o', str(tmp_path / 'one.csv')]
+                ) == 0
+    single = pl.read_csv(tmp_path / 'one.csv', schema_overrides={'id': pl.String})
+    assert single.columns[-5:] == ['p_stand', 'p_accelerate', 'p_cruise', 'p_brake', 'nis']
+    assert main(['--preset', 'rail', str(tmp_path / 'in.csv'), '-o', str(tmp_path / 'o.csv'),
+                 '--engine', 'dask', '--workers', '1']) == 0
+    got = pl.read_csv(tmp_path / 'o.csv', schema_overrides={'id': pl.String})
+    key = ['id', 't']
+    assert got.columns == single.columns
+    assert got.sort(key).equals(single.sort(key))     # nis as the text 'nan' in both
+
+
 def test_partition_function_and_its_errors():
     """filter_partition on a pandas frame; a bad row names its id and time."""
     frame = _fleet(3, 50).to_pandas()

@@ -150,6 +150,17 @@ def test_csv_equals_mcap(tmp_path):
     assert [m.twist.twist.linear.x for m in estimates] == column['velocity']
     assert [m.pose.covariance[0] for m in estimates] == column['var_position']
     assert [m.twist.covariance[0] for m in estimates] == column['var_velocity']
+    # The rail preset's regimes: the CSV's p_<regime> are the bag's regime_probabilities.
+    with Reader(tmp_path / 'o.mcap') as reader:
+        regimes = [TYPESTORE.deserialize_cdr(raw, c.msgtype).data.tolist()
+                   for c, _, raw in reader.messages() if c.topic == '/regime_probabilities']
+        nis = [TYPESTORE.deserialize_cdr(raw, c.msgtype)
+               for c, _, raw in reader.messages() if c.topic == '/innovation']
+    names = [name for name in header if name.startswith('p_')]
+    assert names == ['p_stand', 'p_accelerate', 'p_cruise', 'p_brake']
+    assert header[-5:] == names + ['nis']
+    assert rows[:, [header.index(name) for name in names]].tolist() == regimes
+    assert math.isnan(rows[0, -1]) and [m.vector.z for m in nis] == rows[1:, -1].tolist()
 
 
 def test_params_file_and_overrides(tmp_path):

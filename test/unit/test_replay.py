@@ -281,8 +281,7 @@ def test_config_file_and_its_errors(tmp_path, capsys):
 
 def test_usage_errors_exit_2(tmp_path):
     """Missing or conflicting options are usage errors (argparse, exit 2)."""
-    for argv in ([str(tmp_path / 'in.csv'), '-o', 'x.csv'],
-                 ['--preset', 'train', '-o', 'x.csv'],
+    for argv in (['--preset', 'train', '-o', 'x.csv'],
                  ['--preset', 'bus', 'in.csv', '-o', 'x.csv'],
                  ['--preset', 'train', '--config', 'a.yaml', 'in.csv', '-o', 'x.csv'],
                  ['--preset', 'train', 'in.csv', '-o', 'x.csv', '--horizon', '-1'],

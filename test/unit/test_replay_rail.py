@@ -2,13 +2,14 @@
 
 import csv
 import dataclasses
+import importlib.util
 import math
 import shutil
 
 from kf_train.batch import RailSeriesFilter
 from kf_train.cli.compare import format_table
 from kf_train.cli.replay import main
-from kf_train.estimator import EstimatorSettings, StreamEstimator
+from kf_train.estimator import DEFAULT_PRESET, EstimatorSettings, StreamEstimator
 from kf_train.evaluate import run_comparison
 from kf_train.presets import load_rail_preset, RAIL_PRESET_PATH
 from kf_train.sim import family_parameters, rail_scenario
@@ -87,12 +88,55 @@ def test_a_rail_preset_file_and_the_id_column(run_csv, tmp_path):
     np.testing.assert_allclose(both[1::2, 1], alone[:, 1] + 500.0, rtol=0, atol=1e-9)
 
 
+def test_every_csv_path_writes_the_regimes_and_the_nis(run_csv, tmp_path):
+    """p_<regime> and nis in every CSV output of a rail replay: the same columns, bytes."""
+    path, fleet, t, z = run_csv
+    runs = {'memory': ['--engine', 'memory'], 'builtin': ['--codec', 'builtin'],
+            'blocks': ['--block-rows', '97']}
+    if importlib.util.find_spec('polars') is not None:
+        runs['polars'] = ['--codec', 'polars']
+    outputs = {}
+    for name, extra in runs.items():
+        assert main(['--preset', 'rail', str(path), '-o', str(tmp_path / name)] + extra) == 0
+        outputs[name] = (tmp_path / name).read_bytes()
+    assert len(set(outputs.values())) == 1, list(outputs)
+    header, rows = _read(tmp_path / 'memory')
+    regimes = [f'p_{name}' for name in load_rail_preset().mode_names]
+    assert header[-5:] == regimes + ['nis']
+    # The streaming estimator (no gate) after every stamp: its regimes and its NIS.
+    estimator = StreamEstimator(EstimatorSettings(gate_probability=1.0))
+    for k, (t_k, z_k) in enumerate(zip(t, z)):
+        step = estimator.process(int(round(t_k * NS)), z_k, 1.0)
+        np.testing.assert_array_equal(rows[k, -5:-1], estimator.mode_probabilities()[1])
+        if k == 0:
+            assert math.isnan(rows[k, -1])     # the first fix starts the filter: no NIS
+        else:
+            assert rows[k, -1] == step.update.nis
+    # Every id of a fleet (the bank's path) gets the columns of the file alone.
+    for name, extra in (('fleet', ['--block-rows', '64']),
+                        ('fleet_memory', ['--engine', 'memory'])):
+        assert main(['--preset', 'rail', str(fleet), '-o', str(tmp_path / name)] + extra) == 0
+        fleet_header, both = _read(tmp_path / name)
+        assert fleet_header == header
+        np.testing.assert_array_equal(both[0::2, -5:], rows[:, -5:])
+
+
+def test_a_table_without_a_preset_runs_the_node_default(run_csv, tmp_path):
+    """No --preset: the node's default preset (rail), as a bag replay; CSV and Parquet."""
+    path, _, _, _ = run_csv
+    assert DEFAULT_PRESET == 'rail'     # else name the new default's preset below
+    assert main([str(path), '-o', str(tmp_path / 'default.csv')]) == 0
+    assert main(['--preset', 'rail', str(path), '-o', str(tmp_path / 'rail.csv')]) == 0
+    assert (tmp_path / 'default.csv').read_bytes() == (tmp_path / 'rail.csv').read_bytes()
+    assert main(['--preset', 'train', str(path), '-o', str(tmp_path / 'train.csv')]) == 0
+    assert (tmp_path / 'train.csv').read_bytes() != (tmp_path / 'rail.csv').read_bytes()
+
+
 def test_parquet_input_is_the_csv_replay(run_csv, tmp_path):
     pl = pytest.importorskip('polars')
     path, _, _, _ = run_csv
     pl.read_csv(path).write_parquet(tmp_path / 'in.parquet')
-    assert main(['--preset', 'rail', str(tmp_path / 'in.parquet'),
-                 '-o', str(tmp_path / 'p.csv')]) == 0
+    assert main([str(tmp_path / 'in.parquet'), '-o', str(tmp_path / 'p.csv')]) == 0
     assert main(['--preset', 'rail', str(path), '-o', str(tmp_path / 'c.csv')]) == 0
     assert (tmp_path / 'p.csv').read_bytes() == (tmp_path / 'c.csv').read_bytes()
 
