@@ -30,9 +30,9 @@ PIP = $(PY) -m pip
 CONSTRAINTS := constraints.txt
 PIP_FLAGS := -q --disable-pip-version-check -c $(CONSTRAINTS)
 # The optional features the test suite exercises (setup.py extras_require).
-EXTRAS := plot,bag,fast,dask,tune,progress
+EXTRAS := plot,bag,fast,dask,tune,progress,jit
 # Every extra, for the constraints resolve.
-ALL_EXTRAS := plot,bag,fast,dask,tune,progress
+ALL_EXTRAS := plot,bag,fast,dask,tune,progress,jit
 PYTHON3 ?= python3
 # Inside the clone (build/ is ignored by git and the linters), so parallel clones
 # never share a workspace.

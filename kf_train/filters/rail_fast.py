@@ -1,0 +1,171 @@
+"""
+The rail IMM compiled: :class:`FastRailModel`, the same model in one call per step.
+
+:class:`~kf_train.filters.rail_model.RailModel` is the readable reference: its step
+costs about 125 numpy calls on 4 x 6 x 6 stacks, and numpy's overhead per call, not the
+arithmetic, is what it costs (docs/performance.md). :class:`FastRailModel` is a
+RailModel whose public IMM methods (``predict``, ``update``, ``update_component``,
+``predict_ahead``, ``estimate``) run the arithmetic as numba-compiled loops
+(:mod:`kf_train.filters.rail_kernels`): the same equations, the Joseph form, the
+state's -> stand rates, the entry rule's own gather tables, the held velocities. All
+that is not array arithmetic is the reference's own code, called as it is: F(dt) and
+Q(dt) (:meth:`RailModel.matrices`), the learned measurement noise and the gate's NIS
+(:meth:`~kf_train.filters.imm.IMM.finish_update`), the no-reversal hold
+(:meth:`RailModel.hold_paths`), the checks of inputs. The tests hold it to the reference
+to rounding (relative 1e-9) on random regimes, dts, rewinds and speed updates.
+
+numba is the optional ``jit`` extra. :func:`rail_model` gives the compiled model when
+numba is installed and the environment variable :data:`JIT_VARIABLE` is not ``0``, the
+reference otherwise; either way live and replayed runs of one install take one path, so
+they stay equal to the bit. The first use compiles the kernels (seconds) and caches
+them on disk (numba's ``cache=True``, beside the module or in numba's cache folder); a
+later process loads them (docs/performance.md).
+"""
+
+import importlib
+import importlib.util
+import os
+from typing import Optional, Tuple
+
+from kf_train.filters import imm_stack
+from kf_train.filters.imm import _measurement, _noise_row, _read_only, IMMState, noise_in_use
+from kf_train.filters.kalman import UpdateResult
+from kf_train.filters.rail_model import RailModel, RailModelParameters, STOPPING
+import numpy as np
+
+JIT_VARIABLE = 'KF_TRAIN_JIT'
+"""Set to ``0`` to run the numpy reference even where numba is installed."""
+
+_ERRORS = {1: '{} produced a non-finite state; inputs are too large',
+           2: 'innovation covariance S = H P Hᵀ + R is singular in {}',
+           3: '{} produced an invalid NIS',
+           4: 'prediction produced a non-finite state; inputs are too large'}
+
+
+def jit_enabled() -> bool:
+    """Return whether :func:`rail_model` compiles: numba installed, KF_TRAIN_JIT not 0."""
+    if os.environ.get(JIT_VARIABLE, '').strip() == '0':
+        return False
+    return importlib.util.find_spec('numba') is not None
+
+
+def rail_model(parameters: RailModelParameters = RailModelParameters(),
+               jit: Optional[bool] = None) -> RailModel:
+    """Return the rail IMM: compiled if ``jit`` (default: :func:`jit_enabled`), else numpy."""
+    if jit if jit is not None else jit_enabled():
+        return FastRailModel(parameters)
+    return RailModel(parameters)
+
+
+def _raise(status: int, step: str) -> None:
+    """Raise the ValueError a kernel's status code stands for (0: none)."""
+    if status:
+        raise ValueError(_ERRORS[status].format(step))
+
+
+class FastRailModel(RailModel):
+    """The rail IMM with its array arithmetic compiled; see the module docstring."""
+
+    def __init__(self, parameters: RailModelParameters = RailModelParameters()):
+        """Build the regimes from ``parameters`` and load (or compile) the kernels."""
+        super().__init__(parameters)
+        self.kernels = importlib.import_module('kf_train.filters.rail_kernels')
+        stack = self._stack
+        if stack is None or stack.selected is None or np.any(stack.R != stack.R[0]):
+            raise ValueError('the compiled rail model needs regimes measuring one state '
+                             'with one R')
+        rates = parameters.rates()                    # the rates' diagonal is 0
+        stopping = np.array([regime in STOPPING for regime in range(self.mode_count)])
+        gather = self.entry_rule
+        self._constants = (rates, stopping, parameters.stop_rate_hz,
+                           parameters.stop_speed_mps, gather.index_x, gather.factor_x,
+                           gather.index_P, gather.factor_P, gather.noise_P)
+
+    def predict(self, state: IMMState, dt_s: float, u=None) -> IMMState:
+        """Return the state predicted over dt_s (IMM.predict, compiled)."""
+        if u is not None:
+            return super().predict(state, dt_s, u)
+        dt_s = imm_stack.duration(dt_s)
+        F, Q, _ = self.matrices(dt_s)
+        means, covs, probabilities = self._arrays()
+        _raise(self.kernels.predict(state.means, state.covariances, state.probabilities, dt_s,
+                                    F, Q, *self._constants, means, covs, probabilities),
+               'prediction')
+        return IMMState(_read_only(means), _read_only(covs), _read_only(probabilities),
+                        state.noise)
+
+    def predict_update(self, state: IMMState, dt_s: float, z, R=None,
+                       index: Optional[int] = None) -> Tuple[IMMState, UpdateResult]:
+        """Return the update (of state ``index``) after the prediction: one compiled call."""
+        dt_s = imm_stack.duration(dt_s)
+        z, reported, selected, learn = self._measurement(z, R, index)
+        F, Q, _ = self.matrices(dt_s)
+        means, covs, posterior = self._arrays()
+        gain = np.empty(self._stack.dim_x)
+        y, S, nis, status = self.kernels.predict_update(
+            state.means, state.covariances, state.probabilities, dt_s, F, Q, *self._constants,
+            z, selected, float(noise_in_use(reported, state.noise, learn)[0]), means, covs,
+            posterior, gain)
+        _raise(status, 'update')
+        return self.finish_update(state, means, covs, posterior, (y, S, nis, gain),
+                                  float(reported[0]), learn)
+
+    def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
+        """Return the state corrected by a position z, velocities held (compiled)."""
+        return self._corrected(state, *self._measurement(z, R, None))
+
+    def update_component(self, state: IMMState, z, R, index: int
+                         ) -> Tuple[IMMState, UpdateResult]:
+        """Return the state corrected by a measurement of state ``index`` (compiled)."""
+        return self._corrected(state, *self._measurement(z, R, index))
+
+    def _measurement(self, z, R, index: Optional[int]) -> Tuple[float, np.ndarray, int, bool]:
+        """Return (z, R given, the state measured, whether R is learned), as IMM checks."""
+        stack = self._stack
+        if index is None:
+            return _measurement(z), stack.R if R is None else _noise_row(R), stack.selected, True
+        n = stack.dim_x
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < n:
+            raise ValueError(f'index must be a state index in [0, {n - 1}], got {index!r}')
+        if R is None:
+            raise ValueError('R must be given when H is not the modes own measurement')
+        return _measurement(z), _noise_row(R), index, False
+
+    def _corrected(self, state: IMMState, z: float, reported: np.ndarray, index: int,
+                   learn: bool) -> Tuple[IMMState, UpdateResult]:
+        """Return the compiled update by z of state ``index`` (learn: the position's R)."""
+        means, covs, posterior = self._arrays()
+        gain = np.empty(self._stack.dim_x)
+        y, S, nis, status = self.kernels.update(
+            state.means, state.covariances, state.probabilities, z, index,
+            float(noise_in_use(reported, state.noise, learn)[0]), means, covs, posterior, gain)
+        _raise(status, 'update')
+        return self.finish_update(state, means, covs, posterior, (y, S, nis, gain),
+                                  float(reported[0]), learn)
+
+    def estimate(self, state: IMMState) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) of a state (compiled)."""
+        n = self._stack.dim_x
+        x, P = np.empty(n), np.empty((n, n))
+        self.kernels.combine(state.means, state.covariances, state.probabilities, x, P)
+        return x, P
+
+    def predict_ahead(self, state: IMMState, dt_s: float, u=None
+                      ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) dt_s ahead, no regime going backwards (compiled)."""
+        dt_s = imm_stack.duration(dt_s)
+        if u is not None:
+            raise ValueError('u given to a model without control input')
+        F, Q, _ = self.matrices(dt_s)
+        means, covs, _ = self._arrays()
+        self.kernels.ahead(state.means, state.covariances, F, Q, means, covs)
+        self.hold_paths(state, means, dt_s)
+        n = self._stack.dim_x
+        x, P = np.empty(n), np.empty((n, n))
+        _raise(self.kernels.combine(means, covs, state.probabilities, x, P), 'prediction')
+        return x, P
+
+    def _arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return new (N, n), (N, n, n) and (N,) arrays for a kernel to write."""
+        count, n = self.mode_count, self._stack.dim_x
+        return np.empty((count, n)), np.empty((count, n, n)), np.empty(count)
