@@ -157,12 +157,12 @@ class FastRailModel(RailModel):
         if u is not None:
             raise ValueError('u given to a model without control input')
         F, Q, _ = self.matrices(dt_s)
-        means, covs, _ = self._arrays()
-        self.kernels.ahead(state.means, state.covariances, F, Q, means, covs)
-        self.hold_paths(state, means, dt_s)
+        stops = self.stop_finder
         n = self._stack.dim_x
         x, P = np.empty(n), np.empty((n, n))
-        _raise(self.kernels.combine(means, covs, state.probabilities, x, P), 'prediction')
+        _raise(self.kernels.ahead(state.means, state.covariances, state.probabilities, F, Q,
+                                  self._constants[1], stops.tau_s, *stops.tables(dt_s), x, P),
+               'prediction')
         return x, P
 
     def _arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:

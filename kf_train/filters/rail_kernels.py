@@ -288,10 +288,53 @@ def hold_velocity(means, covs):
 
 
 @_jit
-def ahead(means, covs, F, Q, out_x, out_P):
-    """Write each mode's prediction (x⁻ = F x, P⁻ = F P Fᵀ + Q), not symmetrised."""
-    for j in range(means.shape[0]):
+def ahead(means, covs, probabilities, F, Q, stopping, tau_s, phi1, phi2, first, steps, x, P):
+    """
+    Write the 2-s prediction's mixture (x, P): RailModel.predict_ahead; return the status.
+
+    Each mode's x⁻ = F x, P⁻ = F P Fᵀ + Q (not symmetrised: the mixture is), a stopping
+    regime's mean held where its path stops (:func:`_hold`, on the StopFinder's tables:
+    φ1, φ2 at the horizon, the first grid's F and every step's), then the mixture.
+    """
+    count, n = means.shape
+    out_x, out_P = np.empty((count, n)), np.empty((count, n, n))
+    for j in range(count):
         _propagate(means[j], covs[j], F[j], Q[j], out_x[j], out_P[j], False)
+        if stopping[j]:
+            _hold(means[j], out_x[j], tau_s, phi1, phi2, first, steps)
+    return combine(out_x, out_P, probabilities, x, P)
+
+
+@_jit
+def _hold(start, predicted, tau_s, phi1, phi2, first, steps):
+    """Hold ``predicted`` (in place) where the mean path from ``start`` stops (StopFinder.hold)."""
+    p, v, a, command = start[0], start[1], start[2], start[3]
+    if v >= 0.0 and v + tau_s * (phi1 * min(a, 0.0) + phi2 * min(command, 0.0)) > 0.0:
+        return                                    # v(t) > 0 all along: it never stops
+    state = np.array([p, max(v, 0.0), a, command])
+    path = np.empty(4)
+    grid = first
+    for _ in range(2):
+        found = -1
+        for k in range(grid.shape[0]):
+            for r in range(4):
+                total = 0.0
+                for c in range(4):
+                    total += grid[k, r, c] * state[c]
+                path[r] = total                       # the mean path at grid point k
+            if path[1] <= 0.0:
+                found = k
+                break
+        if found < 0:
+            if v < 0.0:                               # started below 0: the clipped path
+                for r in range(3):
+                    predicted[r] = path[r]
+            return
+        stop_p = path[0]
+        if found == 0:
+            break                                     # standing with a <= 0 already
+        grid = steps[found]
+    predicted[0], predicted[1], predicted[2] = max(stop_p, p), 0.0, 0.0
 
 
 @_jit

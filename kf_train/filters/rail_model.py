@@ -286,6 +286,11 @@ class RailModel(IMM):
                                 self.parameters.stop_speed_mps)
 
     @property
+    def stop_finder(self) -> StopFinder:
+        """Return the no-reversal hold of the regimes' mean paths (:meth:`hold_paths`)."""
+        return self._stops
+
+    @property
     def entry_rule(self) -> EntryGather:
         """Return the entry rule's tables (sources, factors, noises of ℓ per regime)."""
         return self._entry
