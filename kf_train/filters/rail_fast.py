@@ -25,15 +25,18 @@ later process loads them (docs/performance.md).
 import importlib
 import importlib.util
 import os
-from typing import Optional, Tuple
+from typing import Dict, Optional, Tuple
 
 from kf_train.filters import imm_stack
 from kf_train.filters.imm import _measurement, _noise_row, _read_only, IMMState, noise_in_use
 from kf_train.filters.kalman import UpdateResult
+from kf_train.filters.rail_dynamics import (
+    _PHI2_SERIES, _PHI3_SERIES, _SERIES_BELOW, RelaxationNoise, STAND_TRANSITION)
 from kf_train.filters.rail_model import RailModel, RailModelParameters, STOPPING
 import numpy as np
 
 JIT_VARIABLE = 'KF_TRAIN_JIT'
+_KEPT = 64
 """Set to ``0`` to run the numpy reference even where numba is installed."""
 
 _ERRORS = {1: '{} produced a non-finite state; inputs are too large',
@@ -80,13 +83,43 @@ class FastRailModel(RailModel):
         self._constants = (rates, stopping, parameters.stop_rate_hz,
                            parameters.stop_speed_mps, gather.index_x, gather.factor_x,
                            gather.index_P, gather.factor_P, gather.noise_P)
+        table, scale, powers, span = RelaxationNoise(
+            parameters.response_time_s, parameters.acceleration_noise,
+            parameters.command_noise).series
+        self._series_dt_s = span * parameters.response_time_s
+        self._dynamics_constants = (
+            parameters.response_time_s, parameters.stand_noise, parameters.capability_noise,
+            STAND_TRANSITION, _PHI2_SERIES, _PHI3_SERIES, _SERIES_BELOW, table, scale, powers)
+        self._kept: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
+
+    def dynamics(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Return the regimes' stacked F(dt_s), Q(dt_s): :meth:`matrices`', compiled up to 1.5 τ.
+
+        A sensor with jittered stamps brings a new dt at every step: there, the numpy
+        build of F and Q would cost more than the step. Kept for the last 64 dt values.
+        """
+        kept = self._kept.get(dt_s)
+        if kept is None:
+            if dt_s > self._series_dt_s:
+                kept = self.matrices(dt_s)[:2]         # the quadrature's: the reference's
+            else:
+                count, n = self.mode_count, self._stack.dim_x
+                kept = np.empty((count, n, n)), np.empty((count, n, n))
+                self.kernels.dynamics(dt_s, *self._dynamics_constants, *kept)
+                for array in kept:
+                    array.flags.writeable = False
+            if len(self._kept) >= _KEPT:
+                self._kept.pop(next(iter(self._kept)))
+            self._kept[dt_s] = kept
+        return kept
 
     def predict(self, state: IMMState, dt_s: float, u=None) -> IMMState:
         """Return the state predicted over dt_s (IMM.predict, compiled)."""
         if u is not None:
             return super().predict(state, dt_s, u)
         dt_s = imm_stack.duration(dt_s)
-        F, Q, _ = self.matrices(dt_s)
+        F, Q = self.dynamics(dt_s)
         means, covs, probabilities = self._arrays()
         _raise(self.kernels.predict(state.means, state.covariances, state.probabilities, dt_s,
                                     F, Q, *self._constants, means, covs, probabilities),
@@ -99,7 +132,7 @@ class FastRailModel(RailModel):
         """Return the update (of state ``index``) after the prediction: one compiled call."""
         dt_s = imm_stack.duration(dt_s)
         z, reported, selected, learn = self._measurement(z, R, index)
-        F, Q, _ = self.matrices(dt_s)
+        F, Q = self.dynamics(dt_s)
         means, covs, posterior = self._arrays()
         gain = np.empty(self._stack.dim_x)
         y, S, nis, status = self.kernels.predict_update(
@@ -156,7 +189,7 @@ class FastRailModel(RailModel):
         dt_s = imm_stack.duration(dt_s)
         if u is not None:
             raise ValueError('u given to a model without control input')
-        F, Q, _ = self.matrices(dt_s)
+        F, Q = self.dynamics(dt_s)
         stops = self.stop_finder
         n = self._stack.dim_x
         x, P = np.empty(n), np.empty((n, n))

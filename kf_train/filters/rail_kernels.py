@@ -67,6 +67,48 @@ def transition(means, covs, dt_s, rates, stopping, stop_rate_hz, stop_speed_mps)
 
 
 @_jit
+def dynamics(dt_s, tau_s, stand_noise, capability_noise, stand_F, phi2_series, phi3_series,
+             series_below, table, scale, powers, F, Q):
+    """
+    Write the regimes' F(dt) and Q(dt) (N, 6, 6), stand first: rail_dynamics' own, dt <= 1.5 τ.
+
+    φ1 = 1 - e^-x, φ2 = x - φ1, φ3 = x²/2 - φ2 (x = dt/τ; Taylor series below
+    ``series_below``), F's relaxation rows, Q's power series (RelaxationNoise.series).
+    """
+    x = dt_s / tau_s
+    phi1 = -math.expm1(-x)
+    phi2 = x - phi1
+    phi3 = x * x / 2.0 - phi2
+    if x < series_below:
+        phi2, phi3 = 0.0, 0.0
+        for k in range(phi2_series.shape[0]):
+            power = x ** k
+            phi2 += power * phi2_series[k]
+            phi3 += power * phi3_series[k]
+    F[:] = 0.0
+    Q[:] = 0.0
+    F[0] = stand_F
+    Q[0, 0, 0] = stand_noise * dt_s                 # p's random walk at a stand
+    tau2 = tau_s * tau_s
+    rows = ((1.0, dt_s, tau2 * phi2, tau2 * phi3), (0.0, 1.0, tau_s * phi1, tau_s * phi2),
+            (0.0, 0.0, 1.0 - phi1, phi1), (0.0, 0.0, 0.0, 1.0))
+    x_powers = np.empty(powers.shape[0])
+    for k in range(powers.shape[0]):
+        x_powers[k] = x ** powers[k]
+    for j in range(1, F.shape[0]):
+        for a in range(4):
+            for b in range(4):
+                F[j, a, b] = rows[a][b]
+                total = 0.0
+                for k in range(powers.shape[0]):
+                    total += table[4 * a + b, k] * x_powers[k]
+                Q[j, a, b] = total * scale[4 * a + b]
+        F[j, 4, 4] = F[j, 5, 5] = 1.0
+    for j in range(F.shape[0]):
+        Q[j, 4, 4] = Q[j, 5, 5] = capability_noise * dt_s   # A and B drift
+
+
+@_jit
 def predict(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
             stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, out_x, out_P,
             out_probabilities):

@@ -253,3 +253,18 @@ def test_parameters_reach_the_kernels():
     for state, dt, z, _ in _random_states(reference, 3, 60):
         assert_states_close(fast.predict(state, dt), reference.predict(state, dt))
         assert_states_close(fast.update(state, z)[0], reference.update(state, z)[0])
+
+
+def test_the_compiled_dynamics_are_rail_dynamics_own(models):
+    """F(dt), Q(dt) compiled (up to 1.5 τ: the series), the quadrature's beyond."""
+    reference, fast = models
+    tau_s = reference.parameters.response_time_s
+    rng = np.random.default_rng(2)
+    for dt in [0.0, 1e-6, 0.05 * tau_s, 0.0999 * tau_s, 0.1 * tau_s, 1.5 * tau_s,
+               1.5001 * tau_s, 5.0] + rng.uniform(0.0, 2.0 * tau_s, 40).tolist():
+        F, Q = fast.dynamics(dt)
+        assert not F.flags.writeable and not Q.flags.writeable
+        F_ref, Q_ref, _ = reference.matrices(dt)
+        for j in range(4):
+            assert_close(F[j], F_ref[j], f'F at {dt}')
+            assert_close(Q[j], Q_ref[j], f'Q at {dt}')
