@@ -80,7 +80,7 @@ def default_track(scenario, settings=None, jitter_s: float = 0.0
 
 
 def row_rail_cost(quick: bool) -> List[Row]:
-    """Return rows 10a: µs per measurement, rail IMM (compiled and numpy) against the train's KF."""
+    """Return rows 10a: µs per measurement, the rail IMM (compiled, numpy) and the train's KF."""
     import dataclasses
     from kf_train.estimator import EstimatorSettings, StreamEstimator
     from kf_train.filters import FastRailModel, jit_enabled

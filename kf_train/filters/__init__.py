@@ -40,7 +40,7 @@ from kf_train.filters.noise_adaptation import NoiseAdaptation, NoiseScale
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
-from kf_train.filters.rail_fast import FastRailModel, JIT_VARIABLE, jit_enabled, rail_model
+from kf_train.filters.rail_fast import FastRailModel, jit_enabled, JIT_VARIABLE, rail_model
 from kf_train.filters.rail_model import (
     hold_velocity, make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES,
     stop_probability, STOPPING)
@@ -64,11 +64,11 @@ __all__ = [
     'closed_form', 'combine', 'constant_velocity_F', 'constant_velocity_model',
     'ConstantVelocityModel', 'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA',
     'DEFAULT_PARTICLES', 'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter',
-    'ExtendedModel', 'FastRailModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
-    'first_jump_row',
+    'ExtendedModel', 'FastRailModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter',
+    'FILTER_KINDS', 'first_jump_row',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
-    'hold_velocity', 'IMM', 'JIT_VARIABLE', 'jit_enabled', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter',
-    'keep_positive_definite',
+    'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'jit_enabled', 'JIT_VARIABLE', 'kalman',
+    'KalmanFilter', 'keep_positive_definite',
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
     'NoiseAdaptation', 'NoiseScale',

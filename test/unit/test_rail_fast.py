@@ -17,7 +17,7 @@ import dataclasses
 
 from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
 from kf_train.filters import (
-    FastRailModel, IMM, JIT_VARIABLE, jit_enabled, make_rail_filter, rail_model, RailModel,
+    FastRailModel, IMM, jit_enabled, JIT_VARIABLE, make_rail_filter, rail_model, RailModel,
     RailModelParameters)
 from kf_train.sim.rail import family_parameters, rail_scenario
 import numpy as np
@@ -82,7 +82,7 @@ def _random_states(reference, seed, count):
 
 @pytest.mark.parametrize('seed', [0, 1, 2])
 def test_every_step_is_the_reference_s(models, seed):
-    """predict, update, speed update, both at once, estimate, 2-s look-ahead: same states."""
+    """Predict, update, speed update, both at once, estimate, 2-s look-ahead: same states."""
     reference, fast = models
     for state, dt, z, rng in _random_states(reference, seed, 150):
         assert_states_close(fast.predict(state, dt), reference.predict(state, dt))
@@ -138,7 +138,7 @@ def test_a_whole_run_stays_with_the_reference(models):
 
 
 def test_unreachable_regimes_and_zero_dt(models):
-    """dt = 0 (Π = I) from a sure regime: c̄_j = 0 for the others, which keep their own."""
+    """A zero dt (Π = I) from a sure regime: c̄_j = 0 for the others, which keep their own."""
     reference, fast = models
     state = reference.first_estimate(5.0, 1.0)
     sure = state._replace(probabilities=np.array([0.0, 1.0, 0.0, 0.0]))
