@@ -19,7 +19,8 @@ numba is installed and the environment variable :data:`JIT_VARIABLE` is not ``0`
 reference otherwise; either way live and replayed runs of one install take one path, so
 they stay equal to the bit. The first use compiles the kernels (seconds) and caches
 them on disk (numba's ``cache=True``, beside the module or in numba's cache folder); a
-later process loads them (docs/performance.md).
+later process loads them (docs/performance.md). :meth:`FastRailModel.warm_up` does both
+at once (``make jit-cache``, before the tests: a node's first fix should not compile).
 """
 
 import importlib
@@ -197,6 +198,18 @@ class FastRailModel(RailModel):
                                   self._constants[1], stops.tau_s, *stops.tables(dt_s), x, P),
                'prediction')
         return x, P
+
+    def warm_up(self) -> None:
+        """Call every kernel once, so that numba compiles (first time) or loads them now."""
+        state = self.first_estimate(0.0, 1.0)
+        for dt_s in (0.1, 2.0):
+            state = self.predict(state, dt_s)
+            state = self.update(state, 0.5)[0]
+            state = self.predict_update(state, dt_s, 0.5, None)[0]
+            state = self.predict_update(state, dt_s, 0.1, [[0.01]], 1)[0]
+            state = self.update_component(state, 0.1, [[0.01]], 1)[0]
+            self.estimate(state)
+            self.predict_ahead(state, dt_s)
 
     def _arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return new (N, n), (N, n, n) and (N,) arrays for a kernel to write."""

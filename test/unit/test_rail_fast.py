@@ -185,6 +185,7 @@ def test_the_switch(monkeypatch):
     """Compiled where numba is, unless KF_TRAIN_JIT=0; the estimator's fast_path too."""
     monkeypatch.delenv(JIT_VARIABLE, raising=False)
     assert jit_enabled() and type(rail_model()) is FastRailModel
+    FastRailModel().warm_up()  # make jit-cache's: every kernel once
     assert type(make_rail_filter(0.0).imm) is FastRailModel
     assert type(StreamEstimator(RAIL).model.imm) is FastRailModel
     assert type(rail_model(jit=False)) is RailModel
