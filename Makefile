@@ -7,6 +7,7 @@
 #   make test-noros   test/unit in $(CORE_VENV), a venv with no ROS wheel at all,
 #                     holding a plain `pip install '.[plot,bag]'` (what core users get)
 #   make lint         only the ament_flake8 / ament_pep257 tests
+#   make jit-cache    compile (once) the rail IMM's numba kernels (kf_train.filters.rail_fast)
 #   make colcon       colcon build in a throwaway workspace ($(COLCON_WS))
 #   make ros2cli      install the `ros2` CLI and launch wheels from $(ROS2CLI_WHEELS)
 #                     into $(VENV) (when that folder exists, `make test` does it first)
@@ -30,9 +31,9 @@ PIP = $(PY) -m pip
 CONSTRAINTS := constraints.txt
 PIP_FLAGS := -q --disable-pip-version-check -c $(CONSTRAINTS)
 # The optional features the test suite exercises (setup.py extras_require).
-EXTRAS := plot,bag,fast,dask,tune,progress,track
+EXTRAS := plot,bag,fast,dask,tune,progress,track,jit
 # Every extra, for the constraints resolve.
-ALL_EXTRAS := plot,bag,fast,dask,tune,progress,track
+ALL_EXTRAS := plot,bag,fast,dask,tune,progress,track,jit
 PYTHON3 ?= python3
 # Inside the clone (build/ is ignored by git and the linters), so parallel clones
 # never share a workspace.
@@ -50,9 +51,10 @@ ROS2CLI_PACKAGES = rosidl_runtime_py ros2cli ros2action ros2component ros2doctor
   ros2topic launch launch_xml launch_yaml launch_ros ros2launch ament_copyright \
   ros-composition-interfaces
 # `make test` installs them first when the folder is there.
-TEST_PREREQUISITES = colcon $(if $(wildcard $(ROS2CLI_WHEELS)/ros2cli-*.whl),ros2cli)
+TEST_PREREQUISITES = colcon jit-cache $(if $(wildcard $(ROS2CLI_WHEELS)/ros2cli-*.whl),ros2cli)
 
 .PHONY: setup venv demo test test-core test-noros lint colcon ros2cli constraints bench soak \
+	jit-cache \
 	clean distclean
 
 REQUIREMENTS := requirements-ros.txt requirements-test.txt requirements-dev.txt
@@ -93,7 +95,12 @@ test: $(TEST_PREREQUISITES)
 lint: setup
 	$(PY) -m pytest test/lint -q -p no:cacheprovider $(PYTEST_ARGS)
 
-test-core: setup
+# Compile (once) or load the rail IMM's numba kernels, so that no test and no node
+# started by one pays the compile (tens of seconds) at its first fix; a no-op without numba.
+jit-cache: setup
+	$(PY) -c 'import kf_train.filters as f; f.numba_available() and f.FastRailModel().warm_up()'
+
+test-core: setup jit-cache
 	$(PY) -m pytest test/unit -q -p no:cacheprovider $(PYTEST_ARGS)
 
 # A venv without ROS: requirements-test.txt (pure test tools and oracles) and a plain,

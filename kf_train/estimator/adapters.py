@@ -220,13 +220,16 @@ def make_model(settings, preset: Union[Preset, RailPreset],
     and ``ekf`` (an EKF of a linear model is the KF) use the linear model itself,
     ``ukf`` its unscented transform, ``pf`` and ``bootstrap-pf`` a
     :class:`_ParticleModel` on it (keeping its particles in ``particle_states``). With
-    ``fast``, the train's KF is :class:`_FastTrainModel`, its closed form.
+    ``fast``, the train's KF is :class:`_FastTrainModel`, its closed form, and the rail
+    IMM compiled if it can be (:func:`~kf_train.filters.rail_model`); without, the numpy
+    reference.
     """
     if isinstance(preset, RailPreset):
         # The IMM of four Kalman filters (settings allow only kf/ekf for it); its
         # states are kept with the particle filters' (both keyed by a mean's id).
-        return IMMModel(preset.model(), preset.H, preset.R, preset.state_names,
-                        states=particle_states)
+        # Compiled where numba is (kf_train.filters.rail_fast); ``fast`` False: numpy.
+        return IMMModel(preset.model(None if fast else False), preset.H, preset.R,
+                        preset.state_names, states=particle_states)
     q = settings.process_noise_density
     if settings.preset == 'train':
         # Seed 000's model exactly as before presets: F(dt), Q(dt) = q·[...], H = [1, 0].

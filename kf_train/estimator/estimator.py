@@ -155,7 +155,8 @@ class StreamEstimator:
     """Fuses stamped measurements (and controls): the rail preset by default."""
 
     fast_path = True
-    """Run the train's KF in closed form (see :mod:`~kf_train.estimator.adapters`)."""
+    """Run the train's KF in closed form and the rail IMM compiled where it can be (see
+    :mod:`~kf_train.estimator.adapters`); False: the generic numpy references."""
 
     def __init__(self, settings: EstimatorSettings = EstimatorSettings()):
         """Validate ``settings``; the filter starts uninitialised."""

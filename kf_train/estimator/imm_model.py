@@ -103,9 +103,11 @@ class IMMModel:
         Return :meth:`update` after :meth:`predict` over dt_s, the same numbers to the bit.
 
         The IMM state in between is never combined into an (x, P) (nothing reads it):
-        the streaming estimator fuses an in-order measurement with this one call.
+        the streaming estimator fuses an in-order measurement with this one call, the
+        IMM's own (:meth:`~kf_train.filters.IMM.predict_update`: one compiled call for
+        the rail model).
         """
-        state, result = self._update(self.imm.predict(self.state_of(x, P), dt_s), z, R)
+        state, result = self.imm.predict_update(self.state_of(x, P), dt_s, z, R, self.measured)
         x, P = self._keep(state)
         return x, P, result
 

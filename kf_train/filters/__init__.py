@@ -8,9 +8,13 @@ white-noise Q(dt) (:mod:`.models`), the 2-state step in closed form
 one, and :mod:`.regularised_pf`, the one that tracks range-bearing), the χ²
 distribution (:mod:`.chi2`), the input checks (:mod:`.validation`), time units
 (:mod:`.units`), the family behind one interface (:mod:`.family`, make_filter), and
-the model contract the streaming estimator runs (:mod:`.contract`, StepModel).
-Other floors import from here, never from the modules.
+the model contract the streaming estimator runs (:mod:`.contract`, StepModel); the
+rail IMM (:mod:`.rail_model`) and its compiled form (:mod:`.rail_fast`, whose numba
+kernels, :mod:`.rail_kernels`, load on first use). Other floors import from here, never
+from the modules.
 """
+
+import importlib
 
 from kf_train.filters import closed_form, kalman
 from kf_train.filters.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
@@ -36,6 +40,8 @@ from kf_train.filters.noise_adaptation import NoiseAdaptation, NoiseScale
 from kf_train.filters.particle import (
     check_particles, check_seed, DEFAULT_RESAMPLE_THRESHOLD, log_normalise, MAX_PARTICLES,
     ParticleFilter, psd_factor, Snapshot, systematic_resample)
+from kf_train.filters.rail_fast import (
+    FastRailModel, jit_enabled, JIT_VARIABLE, numba_available, rail_model)
 from kf_train.filters.rail_model import (
     hold_velocity, make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES,
     stop_probability, STOPPING)
@@ -59,11 +65,11 @@ __all__ = [
     'closed_form', 'combine', 'constant_velocity_F', 'constant_velocity_model',
     'ConstantVelocityModel', 'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA',
     'DEFAULT_PARTICLES', 'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter',
-    'ExtendedModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter', 'FILTER_KINDS',
-    'first_jump_row',
+    'ExtendedModel', 'FastRailModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter',
+    'FILTER_KINDS', 'first_jump_row',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
-    'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'kalman', 'KalmanFilter',
-    'keep_positive_definite',
+    'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'jit_enabled', 'JIT_VARIABLE', 'kalman',
+    'KalmanFilter', 'keep_positive_definite',
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
     'NoiseAdaptation', 'NoiseScale',
@@ -71,9 +77,9 @@ __all__ = [
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
     'PredictThenUpdate',
-    'ProcessNoise', 'psd_factor', 'RailModel', 'RailModelParameters', 'RangeBearing',
-    'RateTransition', 'regime_columns', 'regularisation_jitter', 'RegularisedParticleFilter',
-    'RegularisedSnapshot',
+    'ProcessNoise', 'psd_factor', 'rail_model', 'RailModel', 'RailModelParameters',
+    'RangeBearing', 'RateTransition', 'regime_columns', 'regularisation_jitter',
+    'RegularisedParticleFilter', 'RegularisedSnapshot',
     'robust_cholesky', 'seconds_to_ns', 'seconds_to_ns_array', 'Snapshot', 'SquareRoot',
     'STATE_NAMES', 'StepModel', 'stop_probability', 'STOPPING',
     'systematic_resample', 'tempering_step', 'Transformed', 'TWO_PI', 'unscented_moments',
@@ -81,3 +87,13 @@ __all__ = [
     'white_noise_integrals', 'white_noise_terms',
     'WhiteNoiseAcceleration', 'wrap_angle',
 ]
+
+# numba compiles these on import (the jit extra): loaded on first use.
+_LAZY = ('rail_kernels',)
+
+
+def __getattr__(name: str):
+    """Import the compiled rail kernels on first use (PEP 562): they need numba."""
+    if name in _LAZY:
+        return importlib.import_module(f'kf_train.filters.{name}')
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

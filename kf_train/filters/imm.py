@@ -22,16 +22,13 @@ state object itself. :class:`IMM` holds the models and computes; :class:`IMMFilt
 holds a state and has the interface of :class:`kf_train.filters.family.Filter`
 (predict, update, predict_ahead, mean, covariance, snapshot, restore, reset, copy).
 
-Public hooks let a model use what it knows about its regimes (see :class:`IMM` and
-:mod:`kf_train.filters.rail_model`): ``transition(dt_s, state)`` may depend on the state
-(a train can only stop when it is slow), and ``entry(j, x, P)`` transforms a
-component that switches into mode j (a new regime brings its own commanded
-acceleration); ``mixing`` and ``matrices`` give the same numbers in fewer numpy calls.
-Without them (:class:`FixedTransition` and no entry), the IMM is filterpy's
-``IMMEstimator`` to rounding. Π(dt) of switching rates is written once,
-:func:`first_jump_row`. Likelihoods are kept as logarithms, so a
-mode whose likelihood underflows a float (filterpy then substitutes 2.2e-308) still
-gets its exact probability.
+Public hooks let a model use what it knows about its regimes (:class:`IMM`,
+:mod:`kf_train.filters.rail_model`): ``transition(dt_s, state)`` may depend on the state,
+``entry(j, x, P)`` transforms a component that switches into mode j; ``mixing`` and
+``matrices`` give the same numbers in fewer numpy calls. Without them, the IMM is
+filterpy's ``IMMEstimator`` to rounding. Π(dt) of switching rates is written once,
+:func:`first_jump_row`. Likelihoods are kept as logarithms, so a mode whose likelihood
+underflows a float (filterpy then substitutes 2.2e-308) still gets its probability.
 """
 
 import math
@@ -224,6 +221,11 @@ def _noise_row(R) -> np.ndarray:
     return as_covariance('R', R, 1)[0]
 
 
+def noise_in_use(reported: np.ndarray, noise: NoiseScale, learn: bool) -> np.ndarray:
+    """Return R = s r, the learned scale on the variance given (exactly r while s is 1)."""
+    return reported if noise.scale == 1.0 or not learn else reported * noise.scale
+
+
 class IMM:
     """
     The IMM's models and arithmetic; every method is pure (states in, states out).
@@ -380,6 +382,14 @@ class IMM:
         """Return the combined (x, P) dt_s ahead: one IMM prediction, moment-matched."""
         return self.estimate(self.predict(state, dt_s, u))
 
+    def predict_update(self, state: IMMState, dt_s: float, z, R=None,
+                       index: Optional[int] = None) -> Tuple[IMMState, UpdateResult]:
+        """Return :meth:`update` (``index``: :meth:`update_component`) after :meth:`predict`."""
+        predicted = self.predict(state, dt_s)
+        if index is None:
+            return self.update(predicted, z, R)
+        return self.update_component(predicted, z, R, index)
+
     def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
         """
         Return the state corrected by z, and the innovation of the whole mixture.
@@ -442,21 +452,33 @@ class IMM:
         elif R is None:
             raise ValueError('R must be given when H is not the modes own measurement')
         reported = stack.R if R is None else _noise_row(R)
-        noise = state.noise
-        # R = s r: the learned scale on the variance given (exactly r while s is 1).
-        R = reported if noise.scale == 1.0 or not learn else reported * noise.scale
+        R = noise_in_use(reported, state.noise, learn)
         result = imm_stack.update(state.means, state.covariances, z, H, R,
                                   stack.identity, selected)
         posterior = imm_stack.posterior(state.probabilities, result.log_likelihoods)
         y, S, nis, gain = imm_stack.mixture_innovation(state.probabilities, state.means, result)
+        return self.finish_update(state, result.means, result.covariances, posterior,
+                                  (y, S, nis, gain), float(reported[0]), learn)
+
+    def finish_update(self, prior: IMMState, means: np.ndarray, covariances: np.ndarray,
+                      posterior: np.ndarray, innovation: tuple, reported_m2: float,
+                      learn: bool) -> Tuple[IMMState, UpdateResult]:
+        """
+        Return the updated state and its UpdateResult from the stacked update's arrays.
+
+        ``innovation``: the mixture's (y, S, NIS, K (n,)); ``reported_m2``: the variance
+        given. The gate's NIS and the learned scale's lesson, for every path.
+        """
+        y, S, nis, gain = innovation
+        noise = prior.noise
         gate_nis = None
         if learn and noise.scale < 1.0:
             # Weighted with the learned R, gated with the R given: a fix is an outlier
             # only if even the receiver's own accuracy cannot explain it.
-            gate_nis = y * y / (S + (1.0 - noise.scale) * float(reported[0]))
+            gate_nis = y * y / (S + (1.0 - noise.scale) * reported_m2)
         if self.adaptation is not None and learn:
-            noise = self.adaptation.learn(noise, y, S, float(reported[0]))
-        new_state = IMMState(_read_only(result.means), _read_only(result.covariances),
+            noise = self.adaptation.learn(noise, y, S, reported_m2)
+        new_state = IMMState(_read_only(means), _read_only(covariances),
                              _read_only(posterior), noise)
         return new_state, UpdateResult(np.array([y]), np.array([[S]]), nis, gain[:, None],
                                        gate_nis)

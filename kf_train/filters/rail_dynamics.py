@@ -156,6 +156,11 @@ class RelaxationNoise:
         self._table = table
         self._powers = k + 1.0
 
+    @property
+    def series(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Return (table (16, k), τ^(1 + p_a + p_b) (16,), powers (k,), largest dt/τ)."""
+        return self._table, self._scale, self._powers, _NOISE_SERIES_SPAN
+
     def __call__(self, dt_s: float) -> np.ndarray:
         """Return the 4x4 Q(dt_s) (a new array)."""
         x = dt_s / self.tau_s

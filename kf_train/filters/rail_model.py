@@ -49,7 +49,7 @@ passenger trains, not tuned to one run (docs/rail.md).
 
 from dataclasses import asdict, dataclass
 import math
-from typing import Dict, Tuple
+from typing import Dict, Optional, Tuple
 
 from kf_train.filters import imm_stack
 from kf_train.filters.imm import first_jump_row, IMM, IMMFilter, IMMState, RateTransition
@@ -286,6 +286,11 @@ class RailModel(IMM):
                                 self.parameters.stop_speed_mps)
 
     @property
+    def stop_finder(self) -> StopFinder:
+        """Return the no-reversal hold of the regimes' mean paths (:meth:`hold_paths`)."""
+        return self._stops
+
+    @property
     def entry_rule(self) -> EntryGather:
         """Return the entry rule's tables (sources, factors, noises of ℓ per regime)."""
         return self._entry
@@ -403,6 +408,13 @@ class RailModel(IMM):
             raise ValueError('u given to a model without control input')
         means, covs = imm_stack.predict(state.means, state.covariances, *self.matrices(dt_s),
                                         final=False)
+        self.hold_paths(state, means, dt_s)
+        x, P = imm_stack.combine(means, covs, state.probabilities)
+        imm_stack.check_finite(x, P, 'prediction')
+        return x, P
+
+    def hold_paths(self, state: IMMState, means: np.ndarray, dt_s: float) -> None:
+        """Hold each moving regime's predicted mean (``means``, in place) where it stops."""
         starts = state.means[:, :4].tolist()
         stops = self._stops
         for j in (ACCELERATE, CRUISE, BRAKE):
@@ -410,9 +422,6 @@ class RailModel(IMM):
                 held = stops.hold(starts[j], means[j], dt_s)
                 if held is not means[j]:
                     means[j] = held
-        x, P = imm_stack.combine(means, covs, state.probabilities)
-        imm_stack.check_finite(x, P, 'prediction')
-        return x, P
 
     def _no_reversal(self, start: np.ndarray, predicted: np.ndarray,
                      dt_s: float) -> np.ndarray:
@@ -434,8 +443,9 @@ def _entry_transformation(params: RailModelParameters) -> EntryGather:
 
 
 def make_rail_filter(position_m: float, parameters: RailModelParameters = None,
-                     variance_m2: float = None) -> IMMFilter:
-    """Return an :class:`~kf_train.filters.imm.IMMFilter` of the rail model at a first fix."""
-    model = RailModel(parameters or RailModelParameters())
+                     variance_m2: float = None, jit: Optional[bool] = None) -> IMMFilter:
+    """Return an IMMFilter of the rail model at a first fix (compiled if ``jit``: rail_model)."""
+    from kf_train.filters.rail_fast import rail_model  # it builds on this module
+    model = rail_model(parameters or RailModelParameters(), jit)
     state = model.first_estimate(position_m, variance_m2)
     return IMMFilter(model, state.means[0], state.covariances[0], state.probabilities)

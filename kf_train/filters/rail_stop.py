@@ -31,6 +31,7 @@ class StopFinder:
         self._phi = phi
         self._grids: Dict[float, dict] = {}
         self._bounds: Dict[float, Tuple[float, float]] = {}
+        self._tables: Dict[float, tuple] = {}
 
     def _grid(self, horizon_s: float, step: int) -> Tuple[np.ndarray, np.ndarray]:
         """Return (t, F(t)) of the first grid (step -1) or of its step-th step's grid."""
@@ -61,6 +62,26 @@ class StopFinder:
                 self._bounds.pop(next(iter(self._bounds)))
             self._bounds[horizon_s] = bound
         return bound
+
+    def tables(self, horizon_s: float) -> Tuple[float, float, np.ndarray, np.ndarray]:
+        """
+        Return (φ1(T/τ), φ2(T/τ), the first grid's F (41, 4, 4), every step's (41, 41, 4, 4)).
+
+        What :meth:`hold` reads, all at once, for a compiled transcription of it
+        (:mod:`kf_train.filters.rail_kernels`); the step grids' entry 0 is unused.
+        """
+        kept = self._tables.get(horizon_s)
+        if kept is None:
+            phi1, phi2 = self._horizon_phi(horizon_s)
+            first = self._grid(horizon_s, -1)[1]
+            steps = np.zeros((_GRID_POINTS,) + first.shape)
+            for step in range(1, _GRID_POINTS):
+                steps[step] = self._grid(horizon_s, step)[1]
+            steps.flags.writeable = False
+            if len(self._tables) >= _HORIZONS_KEPT:
+                self._tables.pop(next(iter(self._tables)))
+            kept = self._tables[horizon_s] = (phi1, phi2, first, steps)
+        return kept
 
     def may_stop(self, start, horizon_s: float) -> bool:
         """

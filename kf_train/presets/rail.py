@@ -20,7 +20,8 @@ import math
 import os
 from typing import Any, Mapping, NamedTuple, Optional, Tuple
 
-from kf_train.filters import MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES
+from kf_train.filters import (
+    MODE_NAMES, rail_model, RailModel, RailModelParameters, STATE_NAMES)
 from kf_train.presets.loader import check_keys, PRESET_DIR, read_yaml_file
 import numpy as np
 
@@ -138,9 +139,9 @@ class RailPreset(NamedTuple):
         """Return () (no control input)."""
         return ()
 
-    def model(self) -> RailModel:
-        """Return the four-regime IMM of these parameters."""
-        return RailModel(self.parameters)
+    def model(self, jit: Optional[bool] = None) -> RailModel:
+        """Return the four-regime IMM of these parameters (compiled if ``jit``: rail_model)."""
+        return rail_model(self.parameters, jit)
 
     @property
     def dynamics(self) -> 'MovingDynamics':

@@ -69,7 +69,7 @@ def _top_level_names(path: str) -> Set[str]:
     """Return the names a module defines at its top level ('*' if it may define any)."""
     with open(path, encoding='utf-8') as stream:
         tree = ast.parse(stream.read())
-    names = set()
+    names, lazy = set(), None
     for node in tree.body:
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
             names.add(node.name)
@@ -79,10 +79,16 @@ def _top_level_names(path: str) -> Set[str]:
             targets = node.targets if isinstance(node, ast.Assign) else [node.target]
             for target in targets:
                 names |= {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
+                if isinstance(target, ast.Name) and target.id == '_LAZY':
+                    lazy = set(ast.literal_eval(node.value))
         elif isinstance(node, (ast.Import, ast.ImportFrom)):
             for alias in node.names:
                 names.add('*' if alias.name == '*' else
                           (alias.asname or alias.name).split('.')[0])
+    if '*' in names and lazy is not None and not any(
+            isinstance(node, ast.ImportFrom) and any(a.name == '*' for a in node.names)
+            for node in tree.body):
+        names = (names - {'*'}) | lazy  # a PEP 562 __getattr__ of the modules in _LAZY
     return names
 
 

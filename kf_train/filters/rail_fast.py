@@ -1,0 +1,221 @@
+"""
+The rail IMM compiled: :class:`FastRailModel`, the same model in one call per step.
+
+:class:`~kf_train.filters.rail_model.RailModel` is the readable reference: its step
+costs about 125 numpy calls on 4 x 6 x 6 stacks, and numpy's overhead per call, not the
+arithmetic, is what it costs (docs/performance.md). :class:`FastRailModel` is a
+RailModel whose public IMM methods (``predict``, ``update``, ``update_component``,
+``predict_ahead``, ``estimate``) run the arithmetic as numba-compiled loops
+(:mod:`kf_train.filters.rail_kernels`): the same equations, the Joseph form, the
+state's -> stand rates, the entry rule's own gather tables, the held velocities. All
+that is not array arithmetic is the reference's own code, called as it is: F(dt) and
+Q(dt) (:meth:`RailModel.matrices`), the learned measurement noise and the gate's NIS
+(:meth:`~kf_train.filters.imm.IMM.finish_update`), the no-reversal hold
+(:meth:`RailModel.hold_paths`), the checks of inputs. The tests hold it to the reference
+to rounding (relative 1e-9) on random regimes, dts, rewinds and speed updates.
+
+numba is the optional ``jit`` extra, and the compiled model is opt-in:
+:func:`rail_model` gives it when numba is installed and the environment variable
+:data:`JIT_VARIABLE` is ``1``, the reference otherwise (importing numba and loading the
+kernels costs a process ~0.9 s of start-up and ~125 MiB: docs/performance.md); either way live and replayed runs of one install take one path, so
+they stay equal to the bit. The first use compiles the kernels (seconds) and caches
+them on disk (numba's ``cache=True``, beside the module or in numba's cache folder); a
+later process loads them (docs/performance.md). :meth:`FastRailModel.warm_up` does both
+at once (``make jit-cache``, before the tests: a node's first fix should not compile).
+"""
+
+import importlib
+import importlib.util
+import os
+from typing import Dict, Optional, Tuple
+
+from kf_train.filters import imm_stack
+from kf_train.filters.imm import _measurement, _noise_row, _read_only, IMMState, noise_in_use
+from kf_train.filters.kalman import UpdateResult
+from kf_train.filters.rail_dynamics import (
+    _PHI2_SERIES, _PHI3_SERIES, _SERIES_BELOW, RelaxationNoise, STAND_TRANSITION)
+from kf_train.filters.rail_model import RailModel, RailModelParameters, STOPPING
+import numpy as np
+
+JIT_VARIABLE = 'KF_TRAIN_JIT'
+"""Set to ``1`` to run the compiled model where numba is installed (opt-in)."""
+_KEPT = 64
+
+_ERRORS = {1: '{} produced a non-finite state; inputs are too large',
+           2: 'innovation covariance S = H P Hᵀ + R is singular in {}',
+           3: '{} produced an invalid NIS',
+           4: 'prediction produced a non-finite state; inputs are too large'}
+
+
+def numba_available() -> bool:
+    """Return whether numba is installed (the ``jit`` extra)."""
+    return importlib.util.find_spec('numba') is not None
+
+
+def jit_enabled() -> bool:
+    """Return whether :func:`rail_model` compiles: KF_TRAIN_JIT=1 and numba installed."""
+    return os.environ.get(JIT_VARIABLE, '').strip() == '1' and numba_available()
+
+
+def rail_model(parameters: RailModelParameters = RailModelParameters(),
+               jit: Optional[bool] = None) -> RailModel:
+    """Return the rail IMM: compiled if ``jit`` (default: :func:`jit_enabled`), else numpy."""
+    if jit if jit is not None else jit_enabled():
+        return FastRailModel(parameters)
+    return RailModel(parameters)
+
+
+def _raise(status: int, step: str) -> None:
+    """Raise the ValueError a kernel's status code stands for (0: none)."""
+    if status:
+        raise ValueError(_ERRORS[status].format(step))
+
+
+class FastRailModel(RailModel):
+    """The rail IMM with its array arithmetic compiled; see the module docstring."""
+
+    def __init__(self, parameters: RailModelParameters = RailModelParameters()):
+        """Build the regimes from ``parameters`` and load (or compile) the kernels."""
+        super().__init__(parameters)
+        self.kernels = importlib.import_module('kf_train.filters.rail_kernels')
+        stack = self._stack
+        if stack is None or stack.selected is None or np.any(stack.R != stack.R[0]):
+            raise ValueError('the compiled rail model needs regimes measuring one state '
+                             'with one R')
+        rates = parameters.rates()                    # the rates' diagonal is 0
+        stopping = np.array([regime in STOPPING for regime in range(self.mode_count)])
+        gather = self.entry_rule
+        self._constants = (rates, stopping, parameters.stop_rate_hz,
+                           parameters.stop_speed_mps, gather.index_x, gather.factor_x,
+                           gather.index_P, gather.factor_P, gather.noise_P)
+        table, scale, powers, span = RelaxationNoise(
+            parameters.response_time_s, parameters.acceleration_noise,
+            parameters.command_noise).series
+        self._series_dt_s = span * parameters.response_time_s
+        self._dynamics_constants = (
+            parameters.response_time_s, parameters.stand_noise, parameters.capability_noise,
+            STAND_TRANSITION, _PHI2_SERIES, _PHI3_SERIES, _SERIES_BELOW, table, scale, powers)
+        self._kept: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
+
+    def dynamics(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray]:
+        """
+        Return the regimes' stacked F(dt_s), Q(dt_s): :meth:`matrices`', compiled up to 1.5 τ.
+
+        A sensor with jittered stamps brings a new dt at every step: there, the numpy
+        build of F and Q would cost more than the step. Kept for the last 64 dt values.
+        """
+        kept = self._kept.get(dt_s)
+        if kept is None:
+            if dt_s > self._series_dt_s:
+                kept = self.matrices(dt_s)[:2]         # the quadrature's: the reference's
+            else:
+                count, n = self.mode_count, self._stack.dim_x
+                kept = np.empty((count, n, n)), np.empty((count, n, n))
+                self.kernels.dynamics(dt_s, *self._dynamics_constants, *kept)
+                for array in kept:
+                    array.flags.writeable = False
+            if len(self._kept) >= _KEPT:
+                self._kept.pop(next(iter(self._kept)))
+            self._kept[dt_s] = kept
+        return kept
+
+    def predict(self, state: IMMState, dt_s: float, u=None) -> IMMState:
+        """Return the state predicted over dt_s (IMM.predict, compiled)."""
+        if u is not None:
+            return super().predict(state, dt_s, u)
+        dt_s = imm_stack.duration(dt_s)
+        F, Q = self.dynamics(dt_s)
+        means, covs, probabilities = self._arrays()
+        _raise(self.kernels.predict(state.means, state.covariances, state.probabilities, dt_s,
+                                    F, Q, *self._constants, means, covs, probabilities),
+               'prediction')
+        return IMMState(_read_only(means), _read_only(covs), _read_only(probabilities),
+                        state.noise)
+
+    def predict_update(self, state: IMMState, dt_s: float, z, R=None,
+                       index: Optional[int] = None) -> Tuple[IMMState, UpdateResult]:
+        """Return the update (of state ``index``) after the prediction: one compiled call."""
+        dt_s = imm_stack.duration(dt_s)
+        z, reported, selected, learn = self._measurement(z, R, index)
+        F, Q = self.dynamics(dt_s)
+        means, covs, posterior = self._arrays()
+        gain = np.empty(self._stack.dim_x)
+        y, S, nis, status = self.kernels.predict_update(
+            state.means, state.covariances, state.probabilities, dt_s, F, Q, *self._constants,
+            z, selected, float(noise_in_use(reported, state.noise, learn)[0]), means, covs,
+            posterior, gain)
+        _raise(status, 'update')
+        return self.finish_update(state, means, covs, posterior, (y, S, nis, gain),
+                                  float(reported[0]), learn)
+
+    def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
+        """Return the state corrected by a position z, velocities held (compiled)."""
+        return self._corrected(state, *self._measurement(z, R, None))
+
+    def update_component(self, state: IMMState, z, R, index: int
+                         ) -> Tuple[IMMState, UpdateResult]:
+        """Return the state corrected by a measurement of state ``index`` (compiled)."""
+        return self._corrected(state, *self._measurement(z, R, index))
+
+    def _measurement(self, z, R, index: Optional[int]) -> Tuple[float, np.ndarray, int, bool]:
+        """Return (z, R given, the state measured, whether R is learned), as IMM checks."""
+        stack = self._stack
+        if index is None:
+            return _measurement(z), stack.R if R is None else _noise_row(R), stack.selected, True
+        n = stack.dim_x
+        if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < n:
+            raise ValueError(f'index must be a state index in [0, {n - 1}], got {index!r}')
+        if R is None:
+            raise ValueError('R must be given when H is not the modes own measurement')
+        return _measurement(z), _noise_row(R), index, False
+
+    def _corrected(self, state: IMMState, z: float, reported: np.ndarray, index: int,
+                   learn: bool) -> Tuple[IMMState, UpdateResult]:
+        """Return the compiled update by z of state ``index`` (learn: the position's R)."""
+        means, covs, posterior = self._arrays()
+        gain = np.empty(self._stack.dim_x)
+        y, S, nis, status = self.kernels.update(
+            state.means, state.covariances, state.probabilities, z, index,
+            float(noise_in_use(reported, state.noise, learn)[0]), means, covs, posterior, gain)
+        _raise(status, 'update')
+        return self.finish_update(state, means, covs, posterior, (y, S, nis, gain),
+                                  float(reported[0]), learn)
+
+    def estimate(self, state: IMMState) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) of a state (compiled)."""
+        n = self._stack.dim_x
+        x, P = np.empty(n), np.empty((n, n))
+        self.kernels.combine(state.means, state.covariances, state.probabilities, x, P)
+        return x, P
+
+    def predict_ahead(self, state: IMMState, dt_s: float, u=None
+                      ) -> Tuple[np.ndarray, np.ndarray]:
+        """Return the combined (x, P) dt_s ahead, no regime going backwards (compiled)."""
+        dt_s = imm_stack.duration(dt_s)
+        if u is not None:
+            raise ValueError('u given to a model without control input')
+        F, Q = self.dynamics(dt_s)
+        stops = self.stop_finder
+        n = self._stack.dim_x
+        x, P = np.empty(n), np.empty((n, n))
+        _raise(self.kernels.ahead(state.means, state.covariances, state.probabilities, F, Q,
+                                  self._constants[1], stops.tau_s, *stops.tables(dt_s), x, P),
+               'prediction')
+        return x, P
+
+    def warm_up(self) -> None:
+        """Call every kernel once, so that numba compiles (first time) or loads them now."""
+        state = self.first_estimate(0.0, 1.0)
+        for dt_s in (0.1, 2.0):
+            state = self.predict(state, dt_s)
+            state = self.update(state, 0.5)[0]
+            state = self.predict_update(state, dt_s, 0.5, None)[0]
+            state = self.predict_update(state, dt_s, 0.1, [[0.01]], 1)[0]
+            state = self.update_component(state, 0.1, [[0.01]], 1)[0]
+            self.estimate(state)
+            self.predict_ahead(state, dt_s)
+
+    def _arrays(self) -> Tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return new (N, n), (N, n, n) and (N,) arrays for a kernel to write."""
+        count, n = self.mode_count, self._stack.dim_x
+        return np.empty((count, n)), np.empty((count, n, n)), np.empty(count)
