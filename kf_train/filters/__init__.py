@@ -19,7 +19,7 @@ import importlib
 from kf_train.filters import closed_form, kalman
 from kf_train.filters.chi2 import chi2_cdf, chi2_mean_bounds, chi2_quantile, chi2_sf
 from kf_train.filters.closed_form import FastUpdate, noise_terms_function, NoiseModel
-from kf_train.filters.contract import PredictThenUpdate, StepModel
+from kf_train.filters.contract import PredictThenUpdate, regime_columns, StepModel
 from kf_train.filters.ekf import (
     ekf_update, ExtendedKalmanFilter, ExtendedModel, FunctionMeasurement, RangeBearing, TWO_PI,
     wrap_angle)
@@ -29,7 +29,7 @@ from kf_train.filters.family import (
 from kf_train.filters.fast import FastRun, FastTrainFilter
 from kf_train.filters.imm import (
     check_transition_matrix, combine, first_jump_row, FixedTransition, IMM, IMMFilter, IMMState,
-    make_state, RateTransition, regime_columns)
+    make_state, RateTransition)
 from kf_train.filters.kalman import KalmanFilter, LOG_2PI, predict, update, UpdateResult
 from kf_train.filters.models import (
     constant_velocity_F, constant_velocity_model, ConstantVelocityModel, LinearDynamicsModel,
@@ -72,7 +72,7 @@ __all__ = [
     'KalmanFilter', 'keep_positive_definite',
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
-    'NoiseAdaptation', 'NoiseScale',
+    'NoiseAdaptation', 'NoiseScale', 'numba_available',
     'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',

@@ -38,10 +38,15 @@ that has one (the rail IMM, whose state between the two is never combined into a
 (x, P)) overrides them.
 """
 
-from typing import Optional, Protocol, runtime_checkable, Tuple
+from typing import List, Optional, Protocol, runtime_checkable, Sequence, Tuple
 
 from kf_train.filters.kalman import UpdateResult
 import numpy as np
+
+
+def regime_columns(mode_names: Sequence[str]) -> List[str]:
+    """Return the names of the regime probabilities in outputs: ``p_<mode>`` per mode."""
+    return [f'p_{name}' for name in mode_names]
 
 
 @runtime_checkable

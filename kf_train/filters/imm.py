@@ -32,9 +32,10 @@ underflows a float (filterpy then substitutes 2.2e-308) still gets its probabili
 """
 
 import math
-from typing import Callable, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.filters import imm_stack
+from kf_train.filters.contract import regime_columns
 from kf_train.filters.imm_stack import frozen as _frozen, LinearStack
 from kf_train.filters.kalman import LOG_2PI, UpdateResult
 from kf_train.filters.noise_adaptation import FIXED, NoiseAdaptation, NoiseScale
@@ -49,11 +50,6 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     """Return ``array`` marked read-only (it is owned by an IMMState)."""
     array.flags.writeable = False
     return array
-
-
-def regime_columns(mode_names: Sequence[str]) -> List[str]:
-    """Return the names of the regime probabilities in outputs: ``p_<mode>`` per mode."""
-    return [f'p_{name}' for name in mode_names]
 
 
 class IMMState(NamedTuple):
@@ -601,5 +597,4 @@ class IMMFilter:
 
     def diagnostics(self):
         """Return the mode probabilities by name."""
-        columns = regime_columns(self.imm.mode_names)
-        return {column: float(p) for column, p in zip(columns, self._state.probabilities)}
+        return dict(zip(regime_columns(self.imm.mode_names), self._state.probabilities.tolist()))

@@ -17,11 +17,12 @@ to rounding (relative 1e-9) on random regimes, dts, rewinds and speed updates.
 numba is the optional ``jit`` extra, and the compiled model is opt-in:
 :func:`rail_model` gives it when numba is installed and the environment variable
 :data:`JIT_VARIABLE` is ``1``, the reference otherwise (importing numba and loading the
-kernels costs a process ~0.9 s of start-up and ~125 MiB: docs/performance.md); either way live and replayed runs of one install take one path, so
-they stay equal to the bit. The first use compiles the kernels (seconds) and caches
-them on disk (numba's ``cache=True``, beside the module or in numba's cache folder); a
-later process loads them (docs/performance.md). :meth:`FastRailModel.warm_up` does both
-at once (``make jit-cache``, before the tests: a node's first fix should not compile).
+kernels costs a process ~0.9 s of start-up and ~125 MiB: docs/performance.md); either
+way live and replayed runs of one process take one path, so they stay equal to the bit.
+The first use compiles the kernels (seconds) and caches them on disk (numba's
+``cache=True``, beside the module or in numba's cache folder); a later process loads them
+(docs/performance.md). :meth:`FastRailModel.warm_up` does both at once (``make
+jit-cache``, before the tests: a node's first fix should not compile).
 """
 
 import importlib
