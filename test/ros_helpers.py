@@ -100,6 +100,37 @@ def assert_startup_refused(domain_id: int, module: str, assignment: str,
     assert 'Traceback' not in stdout + stderr
 
 
+def estimator_and_probe(context: Context, executor: Executor, parameters: dict,
+                        inputs: Dict[str, type], outputs: Dict[str, type]):
+    """
+    Start an in-process estimator and a probe; return (node, probe's publishers, received).
+
+    The probe publishes each of ``inputs`` (topic: message type) and records each of
+    ``outputs`` in ``received[topic]``. It returns once DDS has matched every end. Both
+    nodes are destroyed after the test.
+    """
+    from kf_train.ros.estimator_node import EstimatorNode
+    from rclpy.parameter import Parameter
+    node = own_node(EstimatorNode(context=context, parameter_overrides=[
+        Parameter(name, value=value) for name, value in parameters.items()]))
+    probe = own_node(rclpy.create_node('probe', context=context))
+    executor.add_node(node)
+    executor.add_node(probe)
+    publishers = {topic: probe.create_publisher(kind, topic, 10)
+                  for topic, kind in inputs.items()}
+    received = {topic: [] for topic in outputs}
+    for topic, kind in outputs.items():
+        probe.create_subscription(kind, topic, received[topic].append, 1000)
+    # The node publishes only to subscribers its own side has matched (DDS matches each
+    # end on its own): wait for the node's publishers, not the probe's view.
+    node_publishers = [p for p in node.publishers if p.topic_name.rsplit('/', 1)[-1] in outputs]
+    assert len(node_publishers) == len(outputs)
+    assert spin_until(executor, lambda: all(
+        p.get_subscription_count() == 1 for p in publishers.values()) and all(
+        p.get_subscription_count() == 1 for p in node_publishers), 10.0)
+    return node, publishers, received
+
+
 def live_estimator_outputs(context: Context, executor: Executor, sequence, parameters: dict,
                            topics: Dict[str, Tuple[type, Callable]]):
     """
@@ -108,30 +139,16 @@ def live_estimator_outputs(context: Context, executor: Executor, sequence, param
     ``sequence`` holds (stamp_ns, position_m) pairs, sent with σ = 1 m in frame odom.
     ``topics`` maps each output topic to (message type, the node's count of what it has
     published there); after each measurement the probe waits until it has them all.
-    Both nodes are destroyed after the test.
     """
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from kf_train.ros import messages
-    from kf_train.ros.estimator_node import EstimatorNode
-    from rclpy.parameter import Parameter
-    node = own_node(EstimatorNode(context=context, parameter_overrides=[
-        Parameter(name, value=value) for name, value in parameters.items()]))
-    probe = own_node(rclpy.create_node('probe', context=context))
-    executor.add_node(node)
-    executor.add_node(probe)
-    publisher = probe.create_publisher(PoseWithCovarianceStamped, 'measurement', 10)
-    outputs = {topic: [] for topic in topics}
-    for topic, (kind, _) in topics.items():
-        probe.create_subscription(kind, topic, outputs[topic].append, 1000)
-    # The node publishes only to subscribers its own side has matched (DDS matches each
-    # end on its own): wait for the node's publishers, not the probe's view.
-    node_publishers = [p for p in node.publishers if p.topic_name.rsplit('/', 1)[-1] in topics]
-    assert len(node_publishers) == len(topics)
-    assert spin_until(executor, lambda: publisher.get_subscription_count() == 1 and all(
-        p.get_subscription_count() == 1 for p in node_publishers), 10.0)
+    node, publishers, outputs = estimator_and_probe(
+        context, executor, parameters, {'measurement': PoseWithCovarianceStamped},
+        {topic: kind for topic, (kind, _) in topics.items()})
     for stamp_ns, position_m in sequence:
         received = node.received
-        publisher.publish(messages.to_measurement_msg(stamp_ns, 'odom', position_m, 1.0))
+        publishers['measurement'].publish(
+            messages.to_measurement_msg(stamp_ns, 'odom', position_m, 1.0))
         assert spin_until(executor, lambda: node.received == received + 1, 5.0)
         assert spin_until(executor, lambda: all(
             len(outputs[topic]) == count(node) for topic, (_, count) in topics.items()), 5.0)

@@ -15,14 +15,11 @@ from geometry_msgs.msg import Vector3Stamped
 from kf_train.cli import main as kf_train_main
 from kf_train.io.bagio_types import NAVSATFIX, TYPESTORE
 from kf_train.ros import messages
-from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
-import rclpy
-from rclpy.parameter import Parameter
 from rclpy.serialization import serialize_message
-from ros_helpers import own_node, spin_until
+from ros_helpers import estimator_and_probe, spin_until
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 from test_bag_replay_live import odometry_numbers, vector_numbers
@@ -35,6 +32,7 @@ SPEED_MPS = 10.0
 START = (4.48, 50.90)                       # lon, lat
 AZIMUTH_DEG = 60.0
 GEOD = pyproj.Geod(ellps='WGS84')
+OUTPUTS = {'estimate': Odometry, 'prediction': Odometry, 'innovation': Vector3Stamped}
 
 
 def write_track(path, length_m=2000.0, step_m=100.0):
@@ -69,37 +67,27 @@ def fix_sequence(base_ns, count=60):
     return fixes
 
 
-def live_fix_outputs(context, executor, fixes, parameters, outputs=None):
-    """Send the fixes one by one to an in-process node; return (node, estimates)."""
-    node = own_node(EstimatorNode(context=context, parameter_overrides=[
-        Parameter(name, value=value) for name, value in parameters.items()]))
-    probe = own_node(rclpy.create_node('probe', context=context))
-    executor.add_node(node)
-    executor.add_node(probe)
-    publisher = probe.create_publisher(NavSatFix, 'measurement', 10)
-    topics = {'estimate': Odometry, 'prediction': Odometry, 'innovation': Vector3Stamped}
-    outputs = {topic: [] for topic in topics} if outputs is None else outputs
-    for topic, message_type in topics.items():
-        probe.create_subscription(message_type, topic, outputs[topic].append, 1000)
-    node_publishers = [p for p in node.publishers if p.topic_name.rsplit('/', 1)[-1] in topics]
-    assert spin_until(executor, lambda: publisher.get_subscription_count() == 1 and all(
-        p.get_subscription_count() == 1 for p in node_publishers), 10.0)
+def live_fix_outputs(context, executor, fixes, parameters):
+    """Send the fixes one by one to an in-process node; return (node, outputs by topic)."""
+    node, publishers, outputs = estimator_and_probe(
+        context, executor, parameters, {'measurement': NavSatFix}, OUTPUTS)
     counts = node.session.track.fixes.counts
     for sent, msg in enumerate(fixes, start=1):
-        publisher.publish(msg)
+        publishers['measurement'].publish(msg)
         assert spin_until(executor, lambda: counts.fixes == sent, 5.0)
         assert spin_until(executor, lambda: len(outputs['estimate']) == node.session.fused
                           and len(outputs['prediction']) == node.session.fused
                           and len(outputs['innovation']) == node.session.innovations, 5.0)
-    return node, outputs['estimate']
+    return node, outputs
 
 
 def test_navsatfix_on_a_track_drawn_against_the_travel(ros_context, executor, tmp_path):
     """Along-track x grows with the travel; off-track and no-fix are counted, not fused."""
     track = write_track(tmp_path / 'track.geojson')
     fixes = fix_sequence(time.time_ns() - 60 * NS)
-    node, estimates = live_fix_outputs(ros_context, executor, fixes, {
+    node, outputs = live_fix_outputs(ros_context, executor, fixes, {
         'measurement_type': 'navsatfix', 'track': str(track), 'history_s': 5.0})
+    estimates = outputs['estimate']
     counts = node.session.track.fixes.counts
     assert counts.direction == 'reverse'
     assert counts.no_fix == 1 and counts.off_track == 1
@@ -153,9 +141,8 @@ def test_navsatfix_live_and_bag_replay_are_bit_equal(ros_context, executor, tmp_
     """The same fixes live and from a bag: the same estimates, predictions, innovations."""
     track = write_track(tmp_path / 'track.geojson')
     fixes = fix_sequence(time.time_ns() - 60 * NS)
-    live = {'estimate': [], 'prediction': [], 'innovation': []}
-    node, _ = live_fix_outputs(ros_context, executor, fixes, {
-        'measurement_type': 'navsatfix', 'track': str(track), 'history_s': 5.0}, live)
+    node, live = live_fix_outputs(ros_context, executor, fixes, {
+        'measurement_type': 'navsatfix', 'track': str(track), 'history_s': 5.0})
     assert node.session.track.fixes.counts.off_track == 1
     replayed = replay_fix_outputs(tmp_path, fixes, track, ['history_s:=5.0'])
     for topic, numbers in (('estimate', odometry_numbers), ('prediction', odometry_numbers),

@@ -17,18 +17,16 @@ from geometry_msgs.msg import (
 from kf_train.cli import main as kf_train_main
 from kf_train.io.bagio_types import POSE, TWIST_COVARIANCE, TYPESTORE
 from kf_train.ros import messages
-from kf_train.ros.estimator_node import EstimatorNode
 from nav_msgs.msg import Odometry
 import numpy as np
-import rclpy
-from rclpy.parameter import Parameter
-from ros_helpers import own_node, spin_until
+from ros_helpers import estimator_and_probe, spin_until
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from test_bag_replay_live import bag_message, odometry_numbers, vector_numbers
 
 NS = 1_000_000_000
 PERIOD_NS = 100_000_000
 SPEED_VARIANCE = 0.01
+OUTPUTS = {'estimate': Odometry, 'prediction': Odometry, 'innovation': Vector3Stamped}
 T = TYPESTORE.types
 
 
@@ -61,21 +59,10 @@ def _velocity_msg(stamp_ns, speed_mps, kind=TwistWithCovarianceStamped):
 
 def live_outputs(context, executor, events, parameters, kind=TwistWithCovarianceStamped):
     """Send ``events`` one by one to an in-process node; return (node, outputs by topic)."""
-    node = own_node(EstimatorNode(context=context, parameter_overrides=[
-        Parameter(name, value=value) for name, value in parameters.items()]))
-    probe = own_node(rclpy.create_node('probe', context=context))
-    executor.add_node(node)
-    executor.add_node(probe)
-    position_pub = probe.create_publisher(PoseWithCovarianceStamped, 'measurement', 10)
-    velocity_pub = probe.create_publisher(kind, 'velocity', 10)
-    topics = {'estimate': Odometry, 'prediction': Odometry, 'innovation': Vector3Stamped}
-    outputs = {topic: [] for topic in topics}
-    for topic, message_type in topics.items():
-        probe.create_subscription(message_type, topic, outputs[topic].append, 1000)
-    node_publishers = [p for p in node.publishers if p.topic_name.rsplit('/', 1)[-1] in topics]
-    assert spin_until(executor, lambda: position_pub.get_subscription_count() == 1
-                      and velocity_pub.get_subscription_count() == 1 and all(
-                          p.get_subscription_count() == 1 for p in node_publishers), 10.0)
+    node, publishers, outputs = estimator_and_probe(
+        context, executor, parameters,
+        {'measurement': PoseWithCovarianceStamped, 'velocity': kind}, OUTPUTS)
+    position_pub, velocity_pub = publishers['measurement'], publishers['velocity']
     session = node.session
     for what, stamp_ns, value in events:
         received = session.received + session.velocities_received
