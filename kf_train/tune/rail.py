@@ -32,7 +32,7 @@ from kf_train.presets import (
     RailPreset)
 from kf_train.tune.inputs import reader_for, TopicOptions
 from kf_train.tune.linear import carried_variances, params_yaml, TuneOptions
-from kf_train.tune.rail_fit import fit_rail_noise, RailFit
+from kf_train.tune.rail_fit import fit_rail_noise, MIN_GAIN, RailFit
 import numpy as np
 
 CHECK_CONFIDENCE = 0.99
@@ -95,19 +95,24 @@ def _number(value: float) -> str:
 
 
 def _fit_lines(fit: RailFit, confidence: float) -> List[str]:
-    """Return the estimates' table."""
+    """Return the estimates' table, the starts and, in words, what the data cannot tell."""
     lines = [f'maximum likelihood of the IMM innovations: {fit.passes} passes over the data '
-             f'({fit.evaluations} settings), {fit.seconds:.1f} s'
-             + ('' if fit.converged else f' (optimiser: {fit.message})'),
-             f'  {"parameter":<40} {"estimate":>10}  {f"{confidence:.0%} interval":<24}'
-             f'{"std. error":>10}']
+             f'({fit.evaluations} settings), {fit.seconds:.1f} s; stopped: {fit.stop}']
+    for s in fit.starts:
+        lines.append(f'  climb from {s.label}: log-likelihood {s.start_log_likelihood:.2f} -> '
+                     f'{s.log_likelihood:.2f} ({s.stop})')
+    if not fit.improved:
+        lines.append(f'  no setting beats the one in use (log-likelihood '
+                     f'{fit.start_log_likelihood:.2f}) by {MIN_GAIN:g}: it is kept')
+    lines.append(f'  {"parameter":<40} {"estimate":>10}  {f"{confidence:.0%} interval":<24}'
+                 f'{"std. error":>10}')
     for e in fit.estimates:
         label = f'{e.parameter.symbol:<5} {e.parameter.name} [{e.parameter.unit}]'
         interval = (f'[{_number(e.low)}, {_number(e.high)}]' if e.identified
-                    else 'not identified')
-        note = '  (compatible with 0: bound)' if e.low == 0.0 else ''
+                    else 'the data cannot tell')
         lines.append(f'  {label:<40} {_number(e.value):>10}  {interval:<24}'
-                     f'{_number(e.std_error):>10}{note}')
+                     f'{_number(e.std_error):>10}')
+    lines += [f'  {e.parameter.symbol}: {e.reason}' for e in fit.estimates if e.reason]
     return lines
 
 
@@ -190,7 +195,13 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     def check(setting):
         tuned = preset._replace(parameters=setting.parameters(base))
         return rail_check(tuned, segments, setting.measurement_variance, horizon_s)
-    fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence)
+    shipped = load_rail_preset().parameters          # the grid's centre, however started
+    defaults = fixed._replace(acceleration_noise=shipped.acceleration_noise,
+                              command_noise=shipped.command_noise,
+                              capability_noise=shipped.capability_noise)
+    fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence,
+                         other_starts=[] if defaults == fixed else [('the defaults', defaults)],
+                         grid_centre=defaults, start_label=spec_label)
     horizon_s = args.horizon or preset.horizon_s or 2.0
     lls = likelihoods([before, fit.setting])
     params = {'preset': os.path.abspath(preset_output)}

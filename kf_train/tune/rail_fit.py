@@ -1,20 +1,24 @@
 """
-Maximum likelihood of the rail IMM's noises: scipy's trust-region Newton on log-noises.
+Maximum likelihood of the rail IMM's noises: a climb that cannot go backwards, from many starts.
 
-The likelihood (:func:`kf_train.batch.rail_likelihood.rail_log_likelihoods`) evaluates
-many settings in one pass over the data for little more than the cost of one, so each
-optimiser step asks for a whole finite-difference stencil at once: the centre, ±h on
-every axis and the four corners of every pair (1 + 2n² points, 9 for two noises, 19
-for three), which gives ℓ, its gradient and its Hessian (the observed information)
-together. scipy's ``trust-exact`` (a trust-region Newton method) uses all three, so
-it converges in a handful of passes; a start grid of decades (one pass) keeps it
-away from a far-off start. The intervals come from the Hessian at the maximum, in
-log-parameter space: exp(log θ̂ ± z·se(log θ̂)), as ``kf-train tune`` does for q.
+The likelihood (:func:`kf_train.batch.rail_log_likelihoods`) evaluates many settings in
+one pass over the data, so the fit works on batches (:mod:`kf_train.tune.climb`):
 
-Step h = 1e-2 in log θ: the stencil's truncation error is O(h²) ≈ 1e-4 relative; ℓ
-is computed to ~1e-14 relative (|ℓ| ~ 10⁴ for 6000 fixes: ~1e-10 absolute), so the
-rounding error of a second difference, ~1e-10/h² = 1e-6, stays far below the
-curvatures (≥ 1 for any identified noise: se(log θ) ≤ 1).
+1. **starts**: the setting in use (the preset's, or the file given), any other start
+   the caller names (the shipped defaults), and a grid of decades about the grid
+   centre (the shipped defaults, so the grid does not depend on how the fit was
+   started); one pass for all;
+2. **climbs**: from the best of those, bounded Newton steps in log θ, each taken only
+   if it raises ℓ (:func:`kf_train.tune.climb.climb`); then from any start that began
+   above every end so far (rarely any);
+3. **the answer**: the highest end point. It is never below the setting in use (the
+   climb from it only goes up); when no climb beats it by ``MIN_GAIN`` the fit says
+   so and keeps it (``improved`` False).
+
+The intervals come from the Hessian at the maximum, in log-parameter space:
+exp(log θ̂ ± z·se(log θ̂)); a process noise whose value 0 the data do not reject gets
+[0, bound] (:func:`_boundary`); a noise the data cannot pin down gets, in words, why
+(:func:`kf_train.tune.rail_identify.explain`).
 """
 
 import math
@@ -22,11 +26,18 @@ import time
 from typing import Callable, List, NamedTuple, Sequence, Tuple
 
 from kf_train.batch import RailNoise
+from kf_train.tune.climb import best_of, Climb, climb, derivatives, LN10, stencil
 from kf_train.tune.noise_fit import boundary_threshold, normal_quantile
+from kf_train.tune.rail_identify import explain
 import numpy as np
 
-STEP = 1e-2
 START_DECADES = (-2.0, -1.0, 0.0, 1.0, 2.0)
+MIN_GAIN = 1e-3
+"""A fit that raises ℓ by less than this keeps the setting in use (nothing to gain)."""
+MAX_LOG_SE = 10.0
+"""se(log θ) above this (an interval of ±8 decades) is a singular curvature: not identified."""
+SAME_START = 0.05
+"""Starts closer than this in log θ (5 %) are climbed once."""
 
 
 class RailParameter(NamedTuple):
@@ -55,6 +66,19 @@ class RailEstimate(NamedTuple):
     low: float
     high: float
     identified: bool
+    reason: str = ''
+    """Why the data cannot pin it down, in words ('' when they can)."""
+
+
+class StartResult(NamedTuple):
+    """One start and where its climb ended."""
+
+    label: str
+    start: RailNoise
+    start_log_likelihood: float
+    end: RailNoise
+    log_likelihood: float
+    stop: str
 
 
 class RailFit(NamedTuple):
@@ -64,13 +88,17 @@ class RailFit(NamedTuple):
     estimates: Tuple[RailEstimate, ...]
     log_likelihood: float
     start_log_likelihood: float
+    """ℓ of the setting in use (the first start)."""
     passes: int
-    """Passes over the data (each evaluates a whole stencil of settings)."""
+    """Passes over the data (each evaluates a batch of settings)."""
     evaluations: int
     """Settings evaluated, over all passes."""
     seconds: float
-    converged: bool
-    message: str
+    improved: bool
+    """False: no start beat the setting in use by MIN_GAIN; ``setting`` is that setting."""
+    stop: str
+    """Why the winning climb stopped, in words."""
+    starts: Tuple[StartResult, ...]
 
 
 Likelihoods = Callable[[Sequence[RailNoise]], np.ndarray]
@@ -82,124 +110,104 @@ def _setting(names: Sequence[str], vector, fixed: RailNoise) -> RailNoise:
     return fixed._replace(**{n: float(math.exp(v)) for n, v in zip(names, vector)})
 
 
-def stencil(n: int, h: float = STEP) -> np.ndarray:
-    """Return the offsets of the centre, ±h e_i and (±h, ±h) on every pair: (1 + 2n², n)."""
-    points = [np.zeros(n)]
-    for i in range(n):
-        for sign in (1.0, -1.0):
-            p = np.zeros(n)
-            p[i] = sign * h
-            points.append(p)
-    for i in range(n):
-        for j in range(i):
-            for si in (1.0, -1.0):
-                for sj in (1.0, -1.0):
-                    p = np.zeros(n)
-                    p[i], p[j] = si * h, sj * h
-                    points.append(p)
-    return np.array(points)
+def _vector(names: Sequence[str], setting: RailNoise) -> np.ndarray:
+    """Return log θ of the named fields (a field at 0 starts a decade below 1e-12)."""
+    return np.array([math.log(max(getattr(setting, n), 1e-13)) for n in names])
 
 
-def derivatives(values: np.ndarray, n: int, h: float = STEP):
-    """Return (f, gradient, Hessian) from f on :func:`stencil`'s points (central differences)."""
-    f0 = values[0]
-    g, H = np.zeros(n), np.zeros((n, n))
-    for i in range(n):
-        plus, minus = values[1 + 2 * i], values[2 + 2 * i]
-        g[i] = (plus - minus) / (2.0 * h)                             # ∂f/∂v_i
-        H[i, i] = (plus - 2.0 * f0 + minus) / h ** 2                  # ∂²f/∂v_i²
-    k = 1 + 2 * n
-    for i in range(n):
-        for j in range(i):
-            pp, pm, mp, mm = values[k:k + 4]
-            H[i, j] = H[j, i] = (pp - pm - mp + mm) / (4.0 * h * h)   # ∂²f/∂v_i∂v_j
-            k += 4
-    return f0, g, H
-
-
-class _Stencils:
-    """−ℓ/rows, its gradient and Hessian at a vector, one pass per new vector."""
-
-    def __init__(self, likelihoods: Likelihoods, names, fixed: RailNoise, rows: int):
-        """Wrap the pass; ``rows`` scales ℓ to per-measurement values."""
-        self.likelihoods, self.names, self.fixed, self.rows = likelihoods, names, fixed, rows
-        self.offsets = stencil(len(names))
-        self.kept = None
-        self.passes = self.evaluations = 0
-
-    def at(self, vector):
-        """Return (f, g, H) of −ℓ/rows at ``vector`` (cached for the last vector)."""
-        vector = np.asarray(vector, dtype=float)
-        if self.kept is not None and np.array_equal(self.kept[0], vector):
-            return self.kept[1]
-        points = vector + self.offsets
+def _objective(likelihoods: Likelihoods, names, fixed: RailNoise):
+    """Return ℓ as a function of (K, n) log-vectors; a failing pass is −inf for all."""
+    def objective(points: np.ndarray) -> np.ndarray:
         try:
-            ll = self.likelihoods([_setting(self.names, p, self.fixed) for p in points])
-            values = np.where(np.isfinite(ll), -ll / self.rows, 1e30)
+            return np.asarray(likelihoods([_setting(names, p, fixed) for p in points]),
+                              dtype=float)
         except (ValueError, ArithmeticError):
-            values = np.full(points.shape[0], 1e30)
-        self.passes += 1
-        self.evaluations += points.shape[0]
-        result = derivatives(values, len(self.names))
-        self.kept = (vector.copy(), result)
-        return result
+            return np.full(points.shape[0], -np.inf)
+    return objective
 
 
-def _start(likelihoods: Likelihoods, names, fixed: RailNoise, vector: np.ndarray):
-    """Return (the best of a grid of decades around ``vector``, its size, ℓ at ``vector``)."""
+def _grid(objective, names, centre: np.ndarray, starts: List[np.ndarray]):
+    """Return (the grid of decades about ``centre`` plus ``starts``, ℓ of each): one pass."""
     process = [i for i, n in enumerate(names) if n != 'measurement_variance']
     # 5 values per noise (25 settings for two); 3 for three noises (27, not 125)
     decades = START_DECADES if len(process) <= 2 else START_DECADES[::2]
     grids = np.array(np.meshgrid(*[decades] * len(process), indexing='ij'))
-    grids = grids.reshape(len(process), -1).T * math.log(10.0)
-    points = np.repeat(vector[None], grids.shape[0], axis=0)
+    grids = grids.reshape(len(process), -1).T * LN10
+    points = np.repeat(centre[None], grids.shape[0], axis=0)
     points[:, process] += grids
-    ll = likelihoods([_setting(names, p, fixed) for p in points])
-    ll = np.where(np.isfinite(ll), ll, -np.inf)
-    at_start = float(ll[int(np.flatnonzero(np.all(grids == 0.0, axis=1))[0])])
-    return points[int(np.argmax(ll))], points.shape[0], at_start
+    points = np.concatenate([np.array(starts), points])
+    ll = objective(points)
+    return points, np.where(np.isfinite(ll), ll, -np.inf)
+
+
+def _climbs(objective, points: np.ndarray, ll: np.ndarray, labels: List[str], low, high
+            ) -> Tuple[List[Climb], List[str]]:
+    """
+    Climb from the best point of the batch, then from any start that began above every end.
+
+    A start below an end already reached cannot improve the answer's guarantee (never
+    below the setting in use), so it is not climbed: the answer then does not depend on
+    how the fit was started, only on the grid, which is fixed.
+    """
+    order = [int(np.argmax(ll))] + [k for k in range(len(labels)) if k != int(np.argmax(ll))]
+    climbs, names = [], []
+    for k in order:
+        if climbs and (ll[k] <= max(c.log_likelihood for c in climbs)
+                       or any(np.max(np.abs(points[k] - c.start_vector)) < SAME_START
+                              for c in climbs)):
+            continue
+        climbs.append(climb(objective, points[k], low, high, float(ll[k])))
+        names.append(labels[k] if k < len(labels) else 'grid')
+    return climbs, names
 
 
 def fit_rail_noise(likelihoods: Likelihoods, names: Sequence[str], start: RailNoise,
-                   fixed: RailNoise, rows: int, confidence: float = 0.95) -> RailFit:
+                   fixed: RailNoise, rows: int, confidence: float = 0.95, *,
+                   other_starts: Sequence[Tuple[str, RailNoise]] = (),
+                   grid_centre: RailNoise = None, start_label: str = 'in use') -> RailFit:
     """
     Return the maximum-likelihood values of the ``names`` fields, with intervals.
 
-    ``likelihoods`` evaluates a list of settings in one pass; ``start`` gives the
-    starting values of the estimated fields, ``fixed`` the others; ``rows`` is the
-    number of measurements ℓ sums over. A process noise whose value 0 the data do not
-    reject (ℓ drops by less than the boundary threshold when it is set to 0) gets the
-    interval [0, bound] (:func:`_boundary`). Needs scipy.
+    ``likelihoods`` evaluates a list of settings in one pass; ``start`` is the setting
+    in use (the result is never below it), ``other_starts`` labelled further starts,
+    ``grid_centre`` the centre of the grid of decades (default ``start``); ``fixed``
+    gives the fields not estimated; ``rows`` is the number of measurements ℓ sums over.
     """
-    from scipy import optimize
     began = time.perf_counter()
     names = list(names)
-    vector = np.array([math.log(getattr(start, n)) for n in names])
-    # The box: 10 decades below and 6 above the start; the likelihood is flat below
-    # what the data can detect, and the optimiser stops there (gradient ~ 0).
-    low, high = vector - 10.0 * math.log(10.0), vector + 6.0 * math.log(10.0)
-    stencils = _Stencils(likelihoods, names, fixed, rows)
-    vector, grid_points, start_ll = _start(likelihoods, names, fixed, vector)
-
-    def clipped(v):
-        return np.clip(v, low, high)
-    result = optimize.minimize(lambda v: stencils.at(clipped(v))[0], vector,
-                               method='trust-exact', jac=lambda v: stencils.at(clipped(v))[1],
-                               hess=lambda v: stencils.at(clipped(v))[2],
-                               options={'gtol': 1e-7, 'maxiter': 40})
-    vector = clipped(np.asarray(result.x, dtype=float))
-    f, _, H = stencils.at(vector)
-    ll_hat = -f * rows
+    objective = _objective(likelihoods, names, fixed)
+    first = _vector(names, start)
+    centre = first if grid_centre is None else _vector(names, grid_centre)
+    # The box: 10 decades below and 6 above the grid's centre; ℓ is flat below what the
+    # data can detect, and a climb stops there.
+    low, high = centre - 10.0 * LN10, centre + 6.0 * LN10
+    starts = [first] + [_vector(names, s) for _, s in other_starts]
+    labels = [start_label] + [label for label, _ in other_starts]
+    points, lls = _grid(objective, names, centre, starts)
+    climbs, climbed = _climbs(objective, points, lls, labels, low, high)
+    winner = climbs[best_of(climbs)]
+    start_ll = float(lls[0])
+    improved = winner.log_likelihood >= start_ll + MIN_GAIN
+    vector = winner.vector if improved else first
+    ll_hat = winner.log_likelihood if improved else start_ll
+    values = objective(vector + stencil(len(names)))   # the intervals' full stencil
+    H = -derivatives(np.where(np.isfinite(values), values, ll_hat - 1e30), len(names))[2]
     bounds, extra = _boundary(likelihoods, names, fixed, vector, ll_hat, confidence)
-    estimates = _estimates(names, vector, H * rows, confidence, bounds)
+    estimates = explain(_estimates(names, vector, H, confidence, bounds), names, H)
     setting = _setting(names, vector, fixed)._replace(
         **{names[i]: 0.0 for i, (_, zero) in bounds.items() if zero})
-    return RailFit(setting, estimates, ll_hat, start_ll, stencils.passes + 1 + 3 * bool(extra),
-                   stencils.evaluations + grid_points + extra, time.perf_counter() - began,
-                   bool(result.success), str(result.message))
+    if not improved:
+        setting = start
+    results = tuple(StartResult(label, _setting(names, c.start_vector, fixed),
+                                c.start_log_likelihood, _setting(names, c.vector, fixed),
+                                c.log_likelihood, c.stop) for label, c in zip(climbed, climbs))
+    return RailFit(setting, estimates, ll_hat, start_ll,
+                   sum(c.passes for c in climbs) + 2 + 3 * bool(extra),
+                   sum(c.evaluations for c in climbs) + points.shape[0] + values.shape[0]
+                   + extra,
+                   time.perf_counter() - began, improved, winner.stop, results)
 
 
-LN10 = math.log(10.0)
 COARSE = np.arange(0.0, 17.0) * LN10
 """Offsets in log θ of the first scan for an upper bound: whole decades above θ̂."""
 FINE = np.linspace(0.1, 1.0, 10) * LN10
@@ -286,7 +294,8 @@ def _estimates(names: List[str], vector: np.ndarray, H: np.ndarray, confidence: 
                                     0.0, upper, True))
             continue
         variance = covariance[i, i]
-        if not variance > 0.0:
+        # se(log θ) beyond MAX_LOG_SE: a near-singular curvature, not an interval
+        if not 0.0 < variance <= MAX_LOG_SE ** 2:
             out.append(RailEstimate(PARAMETERS[name], value, math.nan, math.nan, math.nan,
                                     False))
             continue

@@ -15,7 +15,7 @@ from kf_train.filters import chi2_mean_bounds, RailModel, RailModelParameters
 from kf_train.presets import load_rail_preset, RailPreset
 from kf_train.replay.bag import load_config
 from kf_train.sim.rail import rail_scenario
-from kf_train.tune.rail_fit import derivatives, stencil
+from kf_train.tune.climb import derivatives, stencil
 import numpy as np
 import pytest
 import yaml

@@ -1,0 +1,114 @@
+"""The rail fit's optimiser: never below its start, one answer from any start, reasons."""
+
+import math
+
+from kf_train.batch import RailNoise
+from kf_train.tune.climb import cheap_derivatives, cheap_stencil, climb
+import numpy as np
+import pytest
+
+NAMES = ['acceleration_noise', 'command_noise', 'measurement_variance']
+
+
+def _fit(likelihoods, start, **kwargs):
+    """Run the rail fit on a synthetic ℓ (scipy-free)."""
+    from kf_train.tune import fit_rail_noise
+    return fit_rail_noise(likelihoods, kwargs.pop('names', NAMES), start, start, rows=1000,
+                          **kwargs)
+
+
+def _log(settings, names=NAMES):
+    """Return log θ of each setting's named fields (K, n)."""
+    with np.errstate(divide='ignore'):
+        return np.log([[getattr(s, n) for n in names] for s in settings])
+
+
+def test_the_cheap_stencil_is_exact_on_a_quadratic_but_for_its_first_order_cross_terms():
+    """Gradient and diagonal exact on a quadratic; cross terms too (its third derivative is 0)."""
+    A = np.array([[-3.0, 0.5, 0.2], [0.5, -2.0, -0.4], [0.2, -0.4, -1.0]])
+    b = np.array([0.3, -0.1, 2.0])
+    v0 = np.array([0.1, -0.2, 0.3])
+    points = v0 + cheap_stencil(3)
+    values = np.array([0.5 * p @ A @ p + b @ p for p in points])
+    f, g, H = cheap_derivatives(values, 3)
+    # central differences of a quadratic are exact to rounding (|f| ~ 1, h² = 1e-4: 1e-11)
+    np.testing.assert_allclose(g, A @ v0 + b, atol=1e-9)
+    np.testing.assert_allclose(H, A, atol=1e-9)
+
+
+def test_a_climb_on_a_kinked_noisy_likelihood_never_ends_below_its_start():
+    """ℓ = −|v − m|₁ plus a deterministic ripple: a Newton model is wrong everywhere."""
+    m = np.array([1.0, -2.0])
+
+    def objective(points):
+        ripple = 1e-3 * np.sin(1e3 * points).sum(axis=1)
+        return -np.abs(points - m).sum(axis=1) + ripple
+    for start in (np.array([4.0, 3.0]), np.array([-5.0, -6.0]), m + 1e-3):
+        start_ll = float(objective(start[None])[0])
+        result = climb(objective, start, np.full(2, -30.0), np.full(2, 30.0))
+        assert result.log_likelihood >= start_ll
+        assert result.log_likelihood == pytest.approx(float(objective(result.vector[None])[0]))
+    # from far off it gets near the kink (within the ripple's reach, ~1e-3 · n)
+    assert np.abs(climb(objective, np.array([4.0, 3.0]), np.full(2, -30.0),
+                        np.full(2, 30.0)).vector - m).max() < 0.05
+
+
+def test_a_start_at_the_maximum_is_kept_and_said_to_be():
+    """Nothing beats the setting in use by MIN_GAIN: the fit returns it unchanged."""
+    m = np.log([3e-4, 2e-5, 1.1])
+
+    def likelihoods(settings):
+        return -0.5 * np.sum(((_log(settings) - m) / 0.3) ** 2, axis=1)
+    start = RailNoise(3e-4, 2e-5, 1e-6, 1.1)
+    fit = _fit(likelihoods, start)
+    assert not fit.improved and fit.setting == start
+    assert fit.log_likelihood == fit.start_log_likelihood
+
+
+def test_three_starts_give_the_same_answer_to_the_printed_digits():
+    """From the maximum's neighbourhood, a decade off and two decades off: 4 digits agree."""
+    m = np.log([3e-4, 2e-5, 1.1])
+    sd = np.array([0.3, 0.5, 0.02])
+
+    def likelihoods(settings):
+        v = _log(settings)
+        # a non-quadratic ℓ (quartic terms), so Newton needs several steps
+        u = (v - m) / sd
+        return -0.5 * np.sum(u ** 2, axis=1) - 0.05 * np.sum(u ** 4, axis=1)
+    answers = []
+    for start in (RailNoise(2e-4, 3e-5, 1e-6, 1.0), RailNoise(3e-3, 2e-6, 1e-6, 0.5),
+                  RailNoise(3e-6, 2e-3, 1e-6, 3.0)):
+        fit = _fit(likelihoods, start, grid_centre=RailNoise(1e-4, 1e-4, 1e-6, 1.0))
+        assert fit.log_likelihood >= fit.start_log_likelihood
+        answers.append([f'{e.value:.4g}' for e in fit.estimates])
+    assert answers[0] == answers[1] == answers[2] == [f'{math.exp(c):.4g}' for c in m]
+
+
+def test_a_noise_the_data_do_not_excite_is_said_so():
+    """ℓ does not depend on q_a at all: 'the data cannot tell', nothing excites it."""
+    def likelihoods(settings):
+        v = _log(settings)
+        return -0.5 * ((v[:, 1] - math.log(2e-5)) / 0.3) ** 2 \
+            - 0.5 * ((v[:, 2] - math.log(1.1)) / 0.02) ** 2
+    fit = _fit(likelihoods, RailNoise(1e-4, 1e-4, 1e-6, 1.0))
+    q_a = fit.estimates[0]
+    # ℓ(q_a = 0) = ℓ̂ too: the boundary check calls it compatible with 0
+    assert 'cannot tell' in q_a.reason
+    assert all(e.reason == '' for e in fit.estimates[1:])
+
+
+def test_two_noises_only_their_sum_is_identified_are_said_so():
+    """ℓ depends on log q_a + log q_ℓ only: a singular curvature, a traded-off pair."""
+    names = ['acceleration_noise', 'command_noise']
+
+    def likelihoods(settings):
+        v = _log(settings, names)
+        with np.errstate(invalid='ignore'):
+            total = np.where(np.isfinite(v).all(axis=1), v.sum(axis=1), -np.inf)
+        # far below at 0: the boundary check does not apply
+        return np.where(np.isfinite(total),
+                        -0.5 * ((total - math.log(6e-9)) / 0.1) ** 2, -1e9)
+    fit = _fit(likelihoods, RailNoise(1e-4, 1e-4, 1e-6, 1.0), names=names)
+    for estimate in fit.estimates:
+        assert not estimate.identified
+        assert 'only their combination is identified' in estimate.reason
