@@ -22,8 +22,9 @@ from kf_train.tune.validation import (
     SettingScore, split_holdout)
 
 __all__ = [
-    'carried_variances', 'Comparison', 'DEFAULT_HOLDOUT', 'DEFAULT_NOISES', 'Holdout',
-    'MIN_SPLIT_S', 'model_verdict', 'score_setting', 'SettingScore', 'split_holdout', 'estimate_noise', 'fit_rail_noise', 'params_yaml',
-    'RailFit', 'rail_preset_of', 'read_bag', 'reader_for', 'TopicOptions', 'tune_linear',
-    'tune_rail', 'TuneInput', 'TuneOptions', 'TuningResult', 'TUNABLE_NOISES',
+    'carried_variances', 'Comparison', 'DEFAULT_HOLDOUT', 'DEFAULT_NOISES', 'estimate_noise',
+    'fit_rail_noise', 'Holdout', 'MIN_SPLIT_S', 'model_verdict', 'params_yaml', 'RailFit',
+    'rail_preset_of', 'read_bag', 'reader_for', 'score_setting', 'SettingScore',
+    'split_holdout', 'TopicOptions', 'tune_linear', 'tune_rail', 'TuneInput', 'TuneOptions',
+    'TuningResult', 'TUNABLE_NOISES',
 ]
