@@ -31,7 +31,7 @@ from kf_train.presets import (
     is_rail_preset_file, load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_NAME,
     RailPreset)
 from kf_train.sim import RAIL_WARMUP_S
-from kf_train.tune.inputs import reader_for, TopicOptions
+from kf_train.tune.inputs import reader_for, TopicOptions, TuneInput
 from kf_train.tune.linear import carried_variances, params_yaml, TuneOptions
 from kf_train.tune.rail_fit import fit_rail_noise, RailFit
 from kf_train.tune.validation import (
@@ -183,6 +183,8 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     topics = TopicOptions(args.topic, args.control_topic, args.truth_topic)
     full = reader_for(args.input)(args.input, preset, topics)
     holdout = split_holdout(full.segments, args.holdout)
+    other = (reader_for(args.validate)(args.validate, preset, topics) if args.validate
+             else None)                     # read before the fit: a bad path fails fast
     data, notes, fixed, names, before, r_written = _setup(
         args, preset, noises, training_input(full, holdout))    # the fit sees no held-out row
     segments = data.segments
@@ -213,7 +215,7 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     written = fit.setting if r_written else fit.setting._replace(measurement_variance=None)
     tuned = (preset._replace(parameters=written.parameters(base)),
              params.get('measurement_variance', 0.0))
-    lines, refused = _validation(args, preset, tuned, full, holdout, topics)
+    lines, refused = _validation(args, preset, tuned, (full, holdout), other)
     text = '\n'.join([text] + lines)
     if refused:
         return text + f'\nkept the start: {refused}; nothing written (--force writes it)'
@@ -223,8 +225,9 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     return text + f'\nwrote {args.output} and {preset_output}'
 
 
-def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple, full, holdout: Holdout,
-                topics: TopicOptions) -> Tuple[List[str], Optional[str]]:
+def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple,
+                held_out: Tuple[TuneInput, Holdout], other: Optional[TuneInput]
+                ) -> Tuple[List[str], Optional[str]]:
     """
     Return (the report's validation lines, why the tuned setting is refused or None).
 
@@ -233,6 +236,7 @@ def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple, full, holdo
     held-out windows and on ``--validate``'s input (whole, after the warm-up).
     """
     comparisons, lines = [], []
+    full, holdout = held_out
     if args.holdout > 0.0:
         if holdout.kept_whole:
             lines.append(f'held-out: {holdout.kept_whole} segment(s) shorter than '
@@ -240,8 +244,7 @@ def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple, full, holdo
         if any(w is not None for w in holdout.windows):
             comparisons.append(_compare(f'held-out (last {100 * args.holdout:g} %)', preset,
                                         tuned, full, holdout.windows))
-    if args.validate:
-        other = reader_for(args.validate)(args.validate, preset, topics)
+    if other is not None:
         comparisons.append(_compare(f'{os.path.basename(args.validate)} (after '
                                     f'{RAIL_WARMUP_S:g} s)', preset, tuned, other,
                                     warm_windows(other.segments)))

@@ -215,7 +215,8 @@ def _runs(preset, segments, windows, variances, measurement_variance, settings
     with tempfile.TemporaryDirectory(prefix='kf-train-tune-') as directory:
         path = _preset_path(preset, directory)
         node = (node_settings(path, measurement_variance) if settings is None
-                else dataclasses.replace(settings, preset=path))
+                else dataclasses.replace(settings, preset=path,
+                                         measurement_variance=float(measurement_variance)))
         default_r = float(resolve_preset(path).parameters.noise_std_m ** 2)
         for k, (s, window) in enumerate(zip(segments, windows)):
             if window is None or s.t_s.shape[0] == 0:
@@ -238,8 +239,9 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
     parameter takes); ``windows``: one per segment (default: after the warm-up);
     ``variances``: each segment's rows' variances (a bag's), else the preset's R;
     ``measurement_variance``: the node's override (0: the rows'); ``settings``: the
-    estimator's (default: the node's defaults). The filter runs every segment from its
-    first row; only predictions made in the window are scored.
+    estimator's (default: the node's defaults; its preset and measurement_variance are
+    these arguments'). The filter runs every segment from its first row; only
+    predictions made in the window are scored.
     """
     windows = warm_windows(segments) if windows is None else windows
     fixes, truth, nis = [], [], []

@@ -141,8 +141,11 @@ def test_a_tuned_setting_worse_on_the_held_out_part_is_not_written(short_run, ba
     assert 'kept the start: on held-out (last 25 %) the tuned setting predicts worse' in out
     assert not output.exists() and not (short_run / 'refused-rail.yaml').exists()
     forced = short_run / 'forced.yaml'
-    assert tune_main([str(short_run / 'run.csv'), '-o', str(forced), '--force']) == 0
-    assert '--force: written although' in capsys.readouterr().out
+    assert tune_main([str(short_run / 'run.csv'), '-o', str(forced), '--force',
+                      '--validate', str(short_run / 'run.csv')]) == 0
+    out = capsys.readouterr().out
+    assert '--force: written although' in out
+    assert 'run.csv (after 10 s), ' in out       # the whole run, scored after its warm-up
     assert forced.exists() and (short_run / 'forced-rail.yaml').exists()
 
 
