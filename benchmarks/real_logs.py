@@ -28,8 +28,9 @@ Per log this script
    position_type) with a ``.json`` of the log's facts, and reuses them;
 4. scores 2-s predictions, made after every fix from WARMUP_S on, against the fix
    2 s later (linearly interpolated between the two fixes around t + 2 s when none is
-   within 1 ms, and only when those two are <= MAX_BRACKET_S apart): the RMSE and
-   the 2σ coverage (the prediction's variance plus the later fix's R), of
+   within 1 ms, and only when those two are <= MAX_BRACKET_S apart;
+   :mod:`kf_train.evaluate.later_fix`): the RMSE and the 2σ coverage (the
+   prediction's variance plus the later fix's R), of
    * ``default``: the estimator node's defaults (the rail IMM, χ² gate, lock-out)
      over the series as a bag, variance R_FIX_M2 per fix (the logs carry no
      accuracy), run exactly as ``kf-train replay BAG -o out.csv`` runs it (the node's
@@ -62,10 +63,11 @@ import sys
 import time
 from typing import Dict, List, Sequence, Tuple
 
+from kf_train.evaluate import later_fix_score as score
 from kf_train.io.track import polyline_arc_lengths_m, project_onto_polyline
 from kf_train.sim.rail_baselines import (
     INITIAL_ACCELERATION_STD_MPS2, INITIAL_VELOCITY_STD_MPS, transition, white_noise_Q)
-from kf_train.sim.rail_eval import format_table, HORIZON_S, WARMUP_S
+from kf_train.sim.rail_eval import format_table, HORIZON_S
 import numpy as np
 
 WGS84_A_M = 6378137.0             # WGS 84 semi-major axis
@@ -75,8 +77,6 @@ WINDOW_MARGIN_M = 100.0           # how far past its assigned elements a fix may
 CLEAN_CROSS_M = 10.0              # a clean log: every fix this close to the path
 CLEAN_BEHIND_M = 5.0              # and never this far behind its own furthest fix
 REASSIGN_M = 20.0                 # how much nearer elsewhere on the path overrides tp-lib
-MAX_BRACKET_S = 1.0               # widest fix pair a later fix is interpolated in
-MATCH_TOLERANCE_S = 1e-3          # a fix this close to t + 2 s is the later fix
 GAP_S = 1.0                       # a step longer than this is a gap (nominal 0.4 s)
 TUNNEL_GAP_S = 10.0               # a gap this long: the receiver lost the sky
 STAND_SPEED_MPS = 0.3             # slower than this over ±DWELL_HALF_SPAN_S: standing
@@ -289,33 +289,6 @@ def artefacts(series: Dict[str, np.ndarray], facts: dict) -> dict:
 
 
 # -- scoring --------------------------------------------------------------------------------
-
-def later_fix(t: np.ndarray, z: np.ndarray, horizon_s: float = HORIZON_S
-              ) -> Tuple[np.ndarray, np.ndarray]:
-    """Return (target, valid) (N,): the fix at t + horizon, interpolated where need be."""
-    goal = t + horizon_s
-    right = np.searchsorted(t, goal - MATCH_TOLERANCE_S)
-    valid = right < t.size
-    right = np.minimum(right, t.size - 1)
-    exact = valid & (np.abs(t[right] - goal) <= MATCH_TOLERANCE_S)
-    left = np.maximum(right - 1, 0)
-    span = t[right] - t[left]
-    inside = valid & ~exact & (right > 0) & (span <= MAX_BRACKET_S) & (t[right] >= goal)
-    weight = np.where(inside, (goal - t[left]) / np.where(span > 0, span, 1.0), 0.0)
-    target = np.where(exact, z[right], z[left] + weight * (z[right] - z[left]))
-    return target, exact | inside
-
-
-def score(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
-          r_m2: float) -> Tuple[float, float, int]:
-    """Return (RMSE [m], 2σ coverage, count) of 2-s predictions made from WARMUP_S on."""
-    target, valid = later_fix(t, z)
-    scored = valid & (t >= t[0] + WARMUP_S)
-    error = mean[scored] - target[scored]
-    band = 2.0 * np.sqrt(np.maximum(variance[scored], 0.0) + r_m2)
-    return (float(np.sqrt(np.mean(error ** 2))), float(np.mean(np.abs(error) <= band)),
-            int(scored.sum()))
-
 
 def batch_polynomial_kf(t: np.ndarray, z: np.ndarray, dim: int, qs: np.ndarray,
                         rs: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

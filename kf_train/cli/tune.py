@@ -34,6 +34,11 @@ them (``--topic``, ``--control-topic``), truth from ``--truth-topic`` (default
 is estimated unless ``--fix-r`` gives it. A bag does: when every message carries the
 same variance, that is R (the node uses the message's variance) and q alone is
 estimated, unless ``--estimate-r``; when the variances vary, one R is estimated.
+For the rail preset, the last 25 % of each segment is held out (``--holdout``): the
+fit never sees it, and the start and the tuned setting are both run there by the node's
+own estimator (:mod:`kf_train.tune.validation`); a tuned setting that predicts worse
+there (or on ``--validate INPUT``) is not written (the report says 'kept the start',
+exit code 0) unless ``--force``. The linear presets tune on all the data.
 Bad input is reported in one line (file, line or row, column; the bag and its topic)
 with exit code 1.
 """
@@ -46,8 +51,8 @@ from typing import List, Optional
 
 from kf_train.presets import available_presets
 from kf_train.tune import (
-    DEFAULT_NOISES, rail_preset_of, read_bag, reader_for, TUNABLE_NOISES, tune_linear,
-    tune_rail, TuneOptions)
+    DEFAULT_HOLDOUT, DEFAULT_NOISES, MIN_SPLIT_S, rail_preset_of, read_bag, reader_for,
+    TUNABLE_NOISES, tune_linear, tune_rail, TuneOptions)
 
 EXIT_OK = 0
 EXIT_BAD_INPUT = 1
@@ -142,11 +147,25 @@ def _check_args(parser: argparse.ArgumentParser, args) -> None:
 
 
 def add_rail_arguments(parser) -> None:
-    """Add the rail preset's own option to ``kf-train tune``'s parser."""
+    """Add the rail preset's own options to ``kf-train tune``'s parser."""
     parser.add_argument('--rail-noises', metavar='NAMES',
                         help='rail preset: the noises to estimate, comma-separated '
                              '(default acceleration_noise,command_noise; also '
                              'capability_noise); R too unless the data carry it')
+    parser.add_argument('--holdout', metavar='FRACTION', type=float, default=None,
+                        help='rail preset only: hold out the last FRACTION of each '
+                             f'segment (default {DEFAULT_HOLDOUT:g}; segments shorter than '
+                             f'{MIN_SPLIT_S:g} s are kept whole; 0: off): the fit never sees '
+                             'it; the start and the tuned setting are scored there by the '
+                             "node's own estimator (2-s prediction against the later fix)")
+    parser.add_argument('--validate', metavar='INPUT',
+                        help='rail preset only: also score both settings on another input '
+                             '(read as INPUT is), whole after its warm-up')
+    parser.add_argument('--force', action='store_true',
+                        help='rail preset only: write the tuned setting even when it '
+                             'predicts worse than the start on the held-out part or on '
+                             '--validate (without it nothing is written, exit code 0, and '
+                             "the report says 'kept the start: ...')")
 
 
 def check_rail_args(parser, args) -> List[str]:
@@ -166,6 +185,8 @@ def check_rail_args(parser, args) -> List[str]:
         parser.error('--rail-noises: a noise is named twice')
     if args.fix_r is not None and len(args.fix_r) != 1:
         parser.error('--fix-r takes one variance for the rail preset (it measures the position)')
+    if args.holdout is not None and not 0.0 <= args.holdout < 1.0:
+        parser.error(f'--holdout must be in [0, 1), got {args.holdout}')
     return noises
 
 
@@ -174,6 +195,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser = _parser()
     args = parser.parse_args(sys.argv[1:] if argv is None else argv)
     _check_args(parser, args)
+    rail_only = [option for option, given in (('--rail-noises', args.rail_noises is not None),
+                                              ('--holdout', args.holdout is not None),
+                                              ('--validate', args.validate is not None),
+                                              ('--force', args.force)) if given]
+    if args.holdout is None:
+        args.holdout = DEFAULT_HOLDOUT
     options = TuneOptions(**{name: getattr(args, name) for name in TuneOptions._fields})
     try:
         rail = rail_preset_of(options)
@@ -181,8 +208,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             noises = check_rail_args(parser, args)
             text = tune_rail(options, rail, noises, os.path.abspath(args.config) if args.config
                              else 'rail')
-        elif args.rail_noises is not None:
-            parser.error('--rail-noises applies to the rail preset only')
+        elif rail_only:
+            parser.error(f'{rail_only[0]} applies to the rail preset only')
         else:
             text = tune_linear(options)
     except ImportError as error:

@@ -24,6 +24,7 @@ from kf_train.io import check_output_path, write_atomic
 from kf_train.presets import load_preset, load_preset_file, Preset, preset_from_mapping
 from kf_train.tune.inputs import reader_for, TopicOptions, TuneInput
 from kf_train.tune.noise_fit import estimate_noise, TuningResult
+from kf_train.tune.validation import DEFAULT_HOLDOUT
 import numpy as np
 
 DEFAULT_HORIZON_S = 2.0
@@ -51,6 +52,12 @@ class TuneOptions(NamedTuple):
     control_topic: Optional[str] = None
     truth_topic: Optional[str] = None
     estimate_r: bool = False
+    holdout: float = DEFAULT_HOLDOUT
+    """Rail preset only: the fraction of each segment held out (0: none)."""
+    validate: Optional[str] = None
+    """Rail preset only: another input to score the start and the tuned setting on."""
+    force: bool = False
+    """Rail preset only: write the tuned setting even where it scores worse."""
 
 
 def ros_parameters(preset_spec: str, preset: Preset, problem: TuningProblem,

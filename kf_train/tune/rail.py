@@ -23,16 +23,20 @@ the command line is :mod:`kf_train.cli.tune`).
 import datetime
 import math
 import os
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
 from kf_train.io import check_output_path, write_atomic
 from kf_train.presets import (
     is_rail_preset_file, load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_NAME,
     RailPreset)
-from kf_train.tune.inputs import reader_for, TopicOptions
+from kf_train.sim import RAIL_WARMUP_S
+from kf_train.tune.inputs import reader_for, TopicOptions, TuneInput
 from kf_train.tune.linear import carried_variances, params_yaml, TuneOptions
 from kf_train.tune.rail_fit import fit_rail_noise, MIN_GAIN, RailFit
+from kf_train.tune.validation import (
+    Comparison, comparison_lines, Holdout, MIN_SPLIT_S, model_verdict, score_setting,
+    segment_variances, split_holdout, training_input, warm_windows, worse_reason)
 import numpy as np
 
 CHECK_CONFIDENCE = 0.99
@@ -126,6 +130,7 @@ def _check_lines(before, after, ll_before: float, ll_after: float) -> List[str]:
              f'{a.mean_nis:.4g} ({a.verdict})',
              f'lag-1 autocorrelation of the innovations ({CHECK_CONFIDENCE:.0%} bound '
              f'±{a.lag1_bound:.3g}): before {b.lag1:.3g}, after {a.lag1:.3g}']
+    lines += [f'verdict: {sentence}' for sentence in model_verdict(a)]
     pb, pa = before.prediction, after.prediction
     if pa is None:
         lines.append('prediction RMSE: no truth in the input (true_position, true_velocity '
@@ -141,10 +146,8 @@ def _check_lines(before, after, ll_before: float, ll_after: float) -> List[str]:
     return lines
 
 
-def _setup(args: TuneOptions, preset: RailPreset, noises: List[str]):
+def _setup(args: TuneOptions, preset: RailPreset, noises: List[str], data):
     """Return (data, notes, fixed setting, start setting, R written?)."""
-    data = reader_for(args.input)(args.input, preset,
-                                  TopicOptions(args.topic, args.control_topic, args.truth_topic))
     carried, note = carried_variances(data, args.estimate_r)
     notes = [line for line in (data.summary, note) if line]
     fixed_r = args.fix_r[0] if args.fix_r is not None else (carried[0] if carried else None)
@@ -182,7 +185,13 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     for target in (args.output, preset_output):
         if target != '-':
             check_output_path(target)       # before minutes of work, not after
-    data, notes, fixed, names, before, r_written = _setup(args, preset, noises)
+    topics = TopicOptions(args.topic, args.control_topic, args.truth_topic)
+    full = reader_for(args.input)(args.input, preset, topics)
+    holdout = split_holdout(full.segments, args.holdout)
+    other = (reader_for(args.validate)(args.validate, preset, topics) if args.validate
+             else None)                     # read before the fit: a bad path fails fast
+    data, notes, fixed, names, before, r_written = _setup(
+        args, preset, noises, training_input(full, holdout))    # the fit sees no held-out row
     segments = data.segments
     rows = sum(max(s.t_s.shape[0] - 1, 0) for s in segments)
     if rows < 2:
@@ -215,10 +224,54 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
         + _check_lines(check(before), check(fit.setting), float(lls[0]), float(lls[1])))
     # The messages' R stays theirs: the preset file keeps its own R then.
     written = fit.setting if r_written else fit.setting._replace(measurement_variance=None)
+    tuned = (preset._replace(parameters=written.parameters(base)),
+             params.get('measurement_variance', 0.0))
+    lines, refused = _validation(args, preset, tuned, (full, holdout), other)
+    text = '\n'.join([text] + lines)
+    if refused:
+        return text + f'\nkept the start: {refused}; nothing written (--force writes it)'
     write_atomic(preset_output, [tuned_rail_yaml(preset, written)])
     comments = _comments(args, fit, rows, spec_label, preset_output, notes)
     write_atomic(args.output, [params_yaml(params, comments)])
     return text + f'\nwrote {args.output} and {preset_output}'
+
+
+def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple,
+                held_out: Tuple[TuneInput, Holdout], other: Optional[TuneInput]
+                ) -> Tuple[List[str], Optional[str]]:
+    """
+    Return (the report's validation lines, why the tuned setting is refused or None).
+
+    The start is the node untuned (the preset, the rows' own variances); the tuned
+    setting is what the written files make the node run. Both are scored on the
+    held-out windows and on ``--validate``'s input (whole, after the warm-up).
+    """
+    comparisons, lines = [], []
+    full, holdout = held_out
+    if args.holdout > 0.0:
+        if holdout.kept_whole:
+            lines.append(f'held-out: {holdout.kept_whole} segment(s) shorter than '
+                         f'{MIN_SPLIT_S:g} s kept whole for the fit')
+        if any(w is not None for w in holdout.windows):
+            comparisons.append(_compare(f'held-out (last {100 * args.holdout:g} %)', preset,
+                                        tuned, full, holdout.windows))
+    if other is not None:
+        comparisons.append(_compare(f'{os.path.basename(args.validate)} (after '
+                                    f'{RAIL_WARMUP_S:g} s)', preset, tuned, other,
+                                    warm_windows(other.segments)))
+    for comparison in comparisons:
+        lines += comparison_lines(comparison)
+    reasons = [r for r in map(worse_reason, comparisons) if r]
+    if reasons and args.force:
+        lines.append(f'--force: written although {reasons[0]}')
+    return lines, None if args.force or not reasons else reasons[0]
+
+
+def _compare(label: str, preset: RailPreset, tuned: tuple, data, windows) -> Comparison:
+    """Return the start and the tuned setting scored by the node on ``windows``."""
+    variances = segment_variances(data.segments, data.measurement_variances)
+    return Comparison(label, score_setting(preset, data.segments, windows, variances),
+                      score_setting(tuned[0], data.segments, windows, variances, tuned[1]))
 
 
 def rail_preset_of(args: TuneOptions) -> Optional[RailPreset]:

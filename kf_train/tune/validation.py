@@ -1,0 +1,359 @@
+"""
+Is a tuned setting better where it was not fitted? ``kf-train tune``'s hold-out and verdicts.
+
+* :func:`split_holdout` cuts each segment at 75 % of its time span (by default): the
+  fit sees the first part, the rest is held out. Deterministic (no draw): the held-out
+  part is the latest, as the tuned setting will meet later data;
+* :func:`score_setting` runs the estimator node's own :class:`StreamEstimator` (the
+  node's defaults: χ² gate, lock-out, learned noise scale, out-of-sequence window)
+  over every segment from its start, as ``kf-train replay`` would, and scores the
+  2-s predictions made in the held-out windows (the filter warm, as in reality)
+  against the later fix (:mod:`kf_train.evaluate.later_fix`) and, where the segment
+  has it, against the truth;
+* :func:`model_verdict` says in plain words when the innovations' NIS or whiteness
+  (:func:`kf_train.batch.nis_consistency`) shows that the model does not describe
+  the data, and names the likely cause.
+"""
+
+import dataclasses
+import math
+import os
+import tempfile
+from typing import Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
+
+from kf_train.batch import ConsistencyReport, Segment
+from kf_train.estimator import (
+    EstimatorSettings, NS_PER_S, Rejected, resolve_preset, StreamEstimator)
+from kf_train.evaluate import later_fix, later_fix_score
+from kf_train.filters import MODE_NAMES, STATE_NAMES
+from kf_train.presets import RailPreset
+from kf_train.ros import estimator_params
+from kf_train.sim import RAIL_WARMUP_S
+from kf_train.tune.inputs import TuneInput
+import numpy as np
+
+DEFAULT_HOLDOUT = 0.25
+"""The fraction of each segment's time span held out (its end) by default."""
+MIN_SPLIT_S = 120.0
+"""A segment shorter than this is kept whole for the fit: its held-out part would hold
+too few 2-s predictions (and the filter's warm-up) to judge anything."""
+
+Window = Optional[Tuple[float, float]]
+"""The times [start, end) [s] whose predictions are scored; None: none of the segment's."""
+
+
+class Holdout(NamedTuple):
+    """The tuning part and the held-out windows (one per segment)."""
+
+    training: List[Segment]
+    """Each segment's rows before its cut (whole when kept whole)."""
+    windows: List[Window]
+    """Each segment's held-out time window [cut, end], or None (kept whole)."""
+    kept_whole: int
+    """Segments shorter than MIN_SPLIT_S, kept whole for the fit."""
+
+
+class SettingScore(NamedTuple):
+    """A setting's 2-s predictions in the scored windows, and what the node did there."""
+
+    rmse_m: float
+    """RMSE against the later fix [m] (NaN: none scored)."""
+    coverage: float
+    """Share within 2σ (the prediction's variance plus the later fix's R)."""
+    count: int
+    """Predictions scored against the later fix."""
+    truth_rmse_m: Optional[float]
+    """RMSE against the truth at t + 2 s [m]; None without truth."""
+    resets: int
+    """Resets (a lock-out with ``lockout: reset``, a clock jump, ...) in the windows."""
+    reacquisitions: int
+    """Lock-outs that kept the track, in the windows."""
+    gated: int
+    """Fixes the χ² gate rejected, in the windows."""
+    mean_nis: float
+    """Mean NIS of the fixes fused in the windows (NaN: none)."""
+
+
+def split_holdout(segments: Sequence[Segment], fraction: float = DEFAULT_HOLDOUT) -> Holdout:
+    """
+    Return the first 1 − fraction of each segment's time span and the windows held out.
+
+    The cut is at t₀ + (1 − fraction)·(t_end − t₀); rows before it are the training
+    segment, predictions made from it on are scored. A segment shorter than
+    MIN_SPLIT_S is kept whole for the fit (window None). ``fraction`` 0: no hold-out.
+    """
+    if not 0.0 <= fraction < 1.0:
+        raise ValueError(f'the held-out fraction must be in [0, 1), got {fraction}')
+    training, windows, whole = [], [], 0
+    for s in segments:
+        t = s.t_s
+        span = float(t[-1] - t[0]) if t.size else 0.0
+        if fraction == 0.0 or span < MIN_SPLIT_S:
+            training.append(s)
+            windows.append(None)
+            whole += fraction > 0.0
+            continue
+        cut = float(t[0]) + (1.0 - fraction) * span
+        rows = int(np.searchsorted(t, cut))
+        training.append(Segment(*(None if a is None else a[:rows] for a in s)))
+        windows.append((cut, math.inf))
+    return Holdout(training, windows, whole)
+
+
+def training_input(data: TuneInput, holdout: Holdout) -> TuneInput:
+    """Return the input cut to the holdout's training part (its variances too)."""
+    variances = data.measurement_variances
+    if variances is not None:
+        keep = np.concatenate([np.arange(s.t_s.shape[0]) < cut.t_s.shape[0]
+                               for s, cut in zip(data.segments, holdout.training)])
+        variances = variances[keep]
+    return data._replace(segments=holdout.training, measurement_variances=variances)
+
+
+def warm_windows(segments: Sequence[Segment]) -> List[Window]:
+    """Return each segment's window after its warm-up (RAIL_WARMUP_S): scored whole."""
+    return [(float(s.t_s[0]) + RAIL_WARMUP_S, math.inf) for s in segments]
+
+
+def segment_variances(segments: Sequence[Segment], variances: Optional[np.ndarray]
+                      ) -> Optional[List[np.ndarray]]:
+    """Return the rows' position variances (TuneInput.measurement_variances) per segment."""
+    if variances is None:
+        return None
+    ends = np.cumsum([s.t_s.shape[0] for s in segments])
+    return np.split(np.asarray(variances, dtype=float)[:, 0], ends[:-1])
+
+
+def node_settings(preset_path: str, measurement_variance: float = 0.0) -> EstimatorSettings:
+    """Return the estimator node's default settings running a preset file."""
+    settings = estimator_params.load_estimator_config().settings
+    return dataclasses.replace(settings, preset=preset_path,
+                               measurement_variance=float(measurement_variance))
+
+
+def rail_preset_yaml(preset: RailPreset) -> str:
+    """Return a rail preset as the YAML text of its file (loads back to the same preset)."""
+    import yaml
+    fields = dataclasses.asdict(preset.parameters)
+    variance = fields.pop('noise_std_m') ** 2
+    data = {'name': preset.name, 'description': preset.description, 'filter': 'imm',
+            'model': 'rail_regimes', 'states': list(STATE_NAMES),
+            'measurements': ['position'], 'modes': list(MODE_NAMES), 'R': [[variance]],
+            'nominal_period_s': preset.nominal_period_s, 'parameters': fields}
+    if preset.horizon_s is not None:
+        data['horizon_s'] = preset.horizon_s
+    return yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+
+
+def _stamps_ns(t_s: np.ndarray) -> np.ndarray:
+    """Return stamps [ns] > 0 keeping the steps: the times' own where they are positive."""
+    origin_ns = round(float(t_s[0]) * NS_PER_S) if t_s[0] >= 1.0 else NS_PER_S
+    return origin_ns + np.round((t_s - t_s[0]) * NS_PER_S).astype(np.int64)
+
+
+class _Run(NamedTuple):
+    """One segment through the estimator: the prediction made at each fix, the events."""
+
+    mean: np.ndarray
+    variance: np.ndarray
+    r_m2: np.ndarray
+    """The variance each fix was given (the node's override, else the row's)."""
+    nis: np.ndarray
+    """NIS of each fused fix (NaN: not fused, or the first)."""
+    gated: np.ndarray
+    resets: int
+    reacquisitions: int
+
+
+def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
+                 window: Tuple[float, float]) -> _Run:
+    """Run one segment; keep each fix's 2-s prediction, count the events in ``window``."""
+    estimator = StreamEstimator(settings)
+    horizon_ns = round(estimator.horizon_s * NS_PER_S)
+    N = s.t_s.shape[0]
+    mean, variance, nis = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
+    gated = np.zeros(N, dtype=bool)
+    r_m2 = np.array([estimator.measurement_variance(float(v)) for v in variances])
+    inside = (s.t_s >= window[0]) & (s.t_s < window[1])
+    before = after = estimator.stats()
+    for k, stamp_ns in enumerate(_stamps_ns(s.t_s).tolist()):
+        if inside[k] and (k == 0 or not inside[k - 1]):
+            before = estimator.stats()
+        try:
+            step = estimator.process(stamp_ns, float(s.z[k, 0]), float(variances[k]))
+        except Rejected as rejection:
+            step, gated[k] = None, rejection.reason == 'outlier'
+        if step is not None and step.prediction_stamp_ns - step.stamp_ns == horizon_ns:
+            mean[k], variance[k] = step.predicted_x[0], step.predicted_P[0, 0]
+            if step.update is not None:
+                nis[k] = step.update.nis
+        elif estimator.initialized:        # rejected: the newest state, predicted on
+            x, P = estimator.predict_to(stamp_ns + horizon_ns)
+            mean[k], variance[k] = x[0], P[0, 0]
+        else:      # reset by this fix, not restarted yet: the fix held where it is
+            mean[k], variance[k] = s.z[k, 0], r_m2[k]
+        if inside[k] and (k == N - 1 or not inside[k + 1]):
+            after = estimator.stats()
+    return _Run(mean, variance, r_m2, nis, gated,
+                sum(after.resets.values()) - sum(before.resets.values()),
+                after.reacquisitions - before.reacquisitions)
+
+
+def _preset_path(preset: Union[RailPreset, str], directory: str) -> str:
+    """Return a path the node's ``preset`` parameter takes: the file, or one written."""
+    if isinstance(preset, str):
+        return preset
+    path = os.path.join(directory, 'preset.yaml')
+    with open(path, 'w', encoding='utf-8') as stream:
+        stream.write(rail_preset_yaml(preset))
+    return path
+
+
+def _runs(preset, segments, windows, variances, measurement_variance, settings
+          ) -> Iterator[Tuple[Segment, np.ndarray, _Run]]:
+    """Yield (segment, rows scored, run) of every segment with a window."""
+    with tempfile.TemporaryDirectory(prefix='kf-train-tune-') as directory:
+        path = _preset_path(preset, directory)
+        node = (node_settings(path, measurement_variance) if settings is None
+                else dataclasses.replace(settings, preset=path,
+                                         measurement_variance=float(measurement_variance)))
+        default_r = float(resolve_preset(path).parameters.noise_std_m ** 2)
+        for k, (s, window) in enumerate(zip(segments, windows)):
+            if window is None or s.t_s.shape[0] == 0:
+                continue
+            rows = (variances[k] if variances is not None
+                    else np.full(s.t_s.shape[0], default_r))
+            run = _run_segment(node, s, rows, window)
+            yield s, (s.t_s >= window[0]) & (s.t_s < window[1]), run
+
+
+def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
+                  windows: Optional[Sequence[Window]] = None,
+                  variances: Optional[Sequence[np.ndarray]] = None,
+                  measurement_variance: float = 0.0,
+                  settings: Optional[EstimatorSettings] = None) -> SettingScore:
+    """
+    Return the node's 2-s predictions in ``windows`` scored (see :class:`SettingScore`).
+
+    ``preset``: a rail preset, or the path of its file (what the node's ``preset``
+    parameter takes); ``windows``: one per segment (default: after the warm-up);
+    ``variances``: each segment's rows' variances (a bag's), else the preset's R;
+    ``measurement_variance``: the node's override (0: the rows'); ``settings``: the
+    estimator's (default: the node's defaults; its preset and measurement_variance are
+    these arguments'). The filter runs every segment from its first row; only
+    predictions made in the window are scored.
+    """
+    windows = warm_windows(segments) if windows is None else windows
+    fixes, truth, nis = [], [], []
+    gated = resets = reacquired = 0
+    for s, scored, run in _runs(preset, segments, windows, variances, measurement_variance,
+                                settings):
+        fixes.append(later_fix_score(s.t_s, s.z[:, 0], run.mean, run.variance, run.r_m2,
+                                     scored))
+        if s.truth is not None:
+            target, valid = later_fix(s.t_s, s.truth[:, 0])
+            use = scored & valid & np.isfinite(target)
+            truth.append((run.mean[use] - target[use]) ** 2)
+        gated += int(run.gated[scored].sum())
+        resets, reacquired = resets + run.resets, reacquired + run.reacquisitions
+        nis.append(run.nis[scored & np.isfinite(run.nis)])
+    fixes = [f for f in fixes if f.count]
+    count = sum(f.count for f in fixes)
+    # The windows pooled: each segment's figures weighted by its count.
+    rmse = math.sqrt(sum(f.count * f.rmse_m ** 2 for f in fixes) / count) if count else math.nan
+    coverage = sum(f.count * f.coverage for f in fixes) / count if count else math.nan
+    truth = np.concatenate(truth) if truth else np.empty(0)
+    nis = np.concatenate(nis) if nis else np.empty(0)
+    return SettingScore(rmse, coverage, count,
+                        float(np.sqrt(np.mean(truth))) if truth.size else None,
+                        resets, reacquired, gated,
+                        float(np.mean(nis)) if nis.size else math.nan)
+
+
+class Comparison(NamedTuple):
+    """The start and the tuned setting scored on the same windows."""
+
+    label: str
+    """Where, for the report: e.g. 'held-out (last 25 %)', 'run2.mcap (after 10 s)'."""
+    before: SettingScore
+    after: SettingScore
+
+
+def _m(value: Optional[float]) -> str:
+    """Return a length [m] with 2 decimals ('-': none)."""
+    return '-' if value is None or value != value else f'{value:.2f} m'
+
+
+def comparison_lines(comparison: Comparison) -> List[str]:
+    """Return the report's lines of a comparison (the truth's when there is truth)."""
+    b, a = comparison.before, comparison.after
+    if not b.count:
+        return [f'{comparison.label}: no 2-s prediction with a later fix to score']
+    lines = [f'{comparison.label}, {b.count} fixes: 2-s RMSE against the later fix before '
+             f'{_m(b.rmse_m)}, after {_m(a.rmse_m)}; 2σ coverage {100 * b.coverage:.1f} % '
+             f'-> {100 * a.coverage:.1f} %; resets {b.resets + b.reacquisitions} -> '
+             f'{a.resets + a.reacquisitions}; gated {b.gated} -> {a.gated}; mean NIS '
+             f'{b.mean_nis:.2f} -> {a.mean_nis:.2f}']
+    if b.truth_rmse_m is not None and a.truth_rmse_m is not None:
+        lines.append(f'{comparison.label}: 2-s RMSE against the truth before '
+                     f'{_m(b.truth_rmse_m)}, after {_m(a.truth_rmse_m)}')
+    return lines
+
+
+def worse_reason(comparison: Comparison) -> Optional[str]:
+    """
+    Return why the tuned setting is worse than the start there, or None.
+
+    Worse: a larger 2-s RMSE against the later fix, or against the truth where there
+    is truth, or more lock-outs (resets and reacquisitions). Ties are not worse.
+    """
+    b, a = comparison.before, comparison.after
+    if not b.count:
+        return None
+    if a.rmse_m > b.rmse_m:
+        return (f'on {comparison.label} the tuned setting predicts worse (2-s RMSE '
+                f'{_m(a.rmse_m)} against {_m(b.rmse_m)})')
+    if (b.truth_rmse_m is not None and a.truth_rmse_m is not None
+            and a.truth_rmse_m > b.truth_rmse_m):
+        return (f'on {comparison.label} the tuned setting predicts the truth worse (2-s '
+                f'RMSE {_m(a.truth_rmse_m)} against {_m(b.truth_rmse_m)})')
+    if a.resets + a.reacquisitions > b.resets + b.reacquisitions:
+        return (f'on {comparison.label} the tuned setting locks out more often '
+                f'({a.resets + a.reacquisitions} against {b.resets + b.reacquisitions})')
+    return None
+
+
+def model_verdict(report: ConsistencyReport) -> List[str]:
+    """
+    Return plain sentences on what the innovations say is wrong with the model ([]: none).
+
+    ``report``: :func:`kf_train.batch.nis_consistency` of the tuned filter's
+    innovations: the mean NIS against its χ² bounds, the lag-1 autocorrelation
+    against its bound.
+    """
+    sentences = []
+    if report.lag1 > report.lag1_bound:
+        sentences.append(
+            f'the model does not describe this data: innovations are correlated '
+            f'({report.lag1:.2f}, bound ±{report.lag1_bound:.2g}); the likely cause is a '
+            'time-correlated measurement error (a receiver that filters its output, '
+            'multipath that drifts), which no white measurement noise R can describe')
+    elif report.lag1 < -report.lag1_bound:
+        sentences.append(
+            f'the model does not describe this data: innovations alternate in sign '
+            f'({report.lag1:.2f}, bound ±{report.lag1_bound:.2g}); the likely cause is a '
+            'filter that follows each fix too eagerly (process noise too large for the '
+            'measurement noise), or fixes that jump back and forth')
+    if report.mean_nis < report.low:
+        sentences.append(
+            f'the innovations are smaller than the filter expects (mean NIS '
+            f'{report.mean_nis:.3g}, bounds [{report.low:.3g}, {report.high:.3g}]): the '
+            'noise is set larger than the data show'
+            + ('; with correlated innovations, part of the error is slow and the '
+               'filter reads it as motion' if report.lag1 > report.lag1_bound else ''))
+    elif report.mean_nis > report.high:
+        sentences.append(
+            f'the innovations are larger than the filter expects (mean NIS '
+            f'{report.mean_nis:.3g}, bounds [{report.low:.3g}, {report.high:.3g}]): the '
+            'noise is set smaller than the data show')
+    return sentences

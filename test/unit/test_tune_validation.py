@@ -1,0 +1,192 @@
+"""``kf-train tune``'s validation: the hold-out, the node's score, the refusal, the verdicts."""
+
+import math
+
+from kf_train.batch import Innovations, nis_consistency, Segment
+from kf_train.cli import main as kf_train_main
+from kf_train.cli.tune import main as tune_main
+from kf_train.estimator import Rejected, StreamEstimator
+from kf_train.evaluate import later_fix, later_fix_score, MAX_BRACKET_S
+from kf_train.presets import load_rail_preset, rail_preset_from_mapping
+from kf_train.sim.rail import rail_scenario
+from kf_train.tune import rail as tune_rail_module
+from kf_train.tune.validation import (
+    MIN_SPLIT_S, model_verdict, node_settings, rail_preset_yaml, score_setting,
+    split_holdout)
+import numpy as np
+import pytest
+import yaml
+
+# -- the hold-out ------------------------------------------------------------------------
+
+
+def _ramp(duration_s: float, step_s: float = 0.5) -> Segment:
+    """Return a segment of rows every step_s over duration_s, z = t."""
+    t = np.arange(0.0, duration_s + step_s / 2, step_s) + 100.0
+    return Segment(t, t[:, None].copy(), None, None)
+
+
+def test_split_holdout_cuts_each_segment_at_three_quarters_of_its_span():
+    long, short = _ramp(400.0), _ramp(MIN_SPLIT_S / 2)
+    holdout = split_holdout([long, short], 0.25)
+    cut = 100.0 + 300.0
+    assert holdout.windows[0] == (cut, math.inf)
+    assert holdout.training[0].t_s[-1] < cut <= long.t_s[holdout.training[0].t_s.size]
+    assert holdout.training[0].z.shape == (holdout.training[0].t_s.size, 1)
+    assert holdout.windows[1] is None and holdout.training[1] is short
+    assert holdout.kept_whole == 1
+    off = split_holdout([long, short], 0.0)
+    assert off.windows == [None, None] and off.kept_whole == 0
+    assert off.training[0] is long
+    with pytest.raises(ValueError):
+        split_holdout([long], 1.0)
+
+
+# -- the later fix -----------------------------------------------------------------------
+
+def test_later_fix_takes_the_fix_at_t_plus_2_s_or_interpolates_within_a_bracket():
+    t = np.array([0.0, 0.5, 2.0005, 2.4, 3.1, 4.5])
+    z = np.array([0.0, 5.0, 20.0, 24.0, 31.0, 45.0])
+    target, valid = later_fix(t, z)
+    assert valid[0] and target[0] == 20.0                # within 1 ms: the fix itself
+    assert valid[1] and target[1] == pytest.approx(24.0 + (2.5 - 2.4) / 0.7 * 7.0)
+    assert 3.1 - 2.4 <= MAX_BRACKET_S
+    assert not valid[2]               # 4.0005 lies between 3.1 and 4.5: 1.4 s, too wide
+    assert not valid[3:].any()        # past the last fix
+    score = later_fix_score(t, z, np.array([21.0, 24.1, 0, 0, 0, 0]), np.full(6, 0.25),
+                            1.0, made=np.ones(6, dtype=bool))
+    assert score.count == 2
+    assert score.rmse_m == pytest.approx(math.sqrt((1.0 + (24.1 - target[1]) ** 2) / 2))
+    assert score.coverage == 1.0      # |error| <= 2 sqrt(0.25 + 1)
+
+
+# -- the node's score --------------------------------------------------------------------
+
+def test_score_setting_is_the_node_estimator_run_by_hand():
+    scenario, _ = rail_scenario(seed=3, family='metro')
+    rows = 600                                            # 60 s at 10 Hz
+    z = scenario.z[:rows].copy()
+    z[450, 0] += 1000.0                                   # one outlier for the gate
+    segment = Segment(scenario.t_s[:rows], z, None, scenario.truth[:rows])
+    window = (40.0 + float(segment.t_s[0]), math.inf)
+    found = score_setting('rail', [segment], [window])
+    # By hand: the node's defaults, stamps from 1 s, R = the preset's 1 m².
+    estimator = StreamEstimator(node_settings('rail'))
+    t = segment.t_s
+    stamps = 10 ** 9 + np.round((t - t[0]) * 1e9).astype(np.int64)
+    mean, variance, nis, gated = np.zeros(rows), np.zeros(rows), [], 0
+    for k in range(rows):
+        try:
+            step = estimator.process(int(stamps[k]), float(z[k, 0]), 1.0)
+            mean[k], variance[k] = step.predicted_x[0], step.predicted_P[0, 0]
+            if step.update is not None and t[k] >= window[0]:
+                nis.append(step.update.nis)
+        except Rejected as rejection:
+            gated += rejection.reason == 'outlier' and t[k] >= window[0]
+            x, P = estimator.predict_to(int(stamps[k]) + 2 * 10 ** 9)
+            mean[k], variance[k] = x[0], P[0, 0]
+    made = (t >= window[0]) & (t + 2.0 <= t[-1] + 1e-9)
+    ahead = np.searchsorted(t, t[made] + 2.0 - 1e-6)
+    error = mean[made] - z[ahead, 0]
+    truth_error = mean[made] - scenario.truth[:rows][ahead, 0]
+    assert gated == 1 and found.gated == 1
+    assert found.count == int(made.sum())
+    assert found.rmse_m == pytest.approx(math.sqrt(np.mean(error ** 2)), rel=1e-12)
+    assert found.coverage == pytest.approx(
+        np.mean(np.abs(error) <= 2.0 * np.sqrt(variance[made] + 1.0)), rel=1e-12)
+    assert found.truth_rmse_m == pytest.approx(math.sqrt(np.mean(truth_error ** 2)),
+                                               rel=1e-12)
+    assert found.mean_nis == pytest.approx(np.mean(nis), rel=1e-12)
+    assert found.resets == found.reacquisitions == 0
+    # The same preset given as an object (written to a file the node reads) scores alike.
+    assert score_setting(load_rail_preset(), [segment], [window]) == found
+
+
+def test_rail_preset_yaml_loads_back_to_the_same_preset():
+    preset = load_rail_preset()
+    again = rail_preset_from_mapping(yaml.safe_load(rail_preset_yaml(preset)))
+    assert again._replace(source=preset.source) == preset
+
+
+# -- the refusal -------------------------------------------------------------------------
+
+@pytest.fixture(scope='module')
+def short_run(tmp_path_factory):
+    """Simulate a 160-s rail run as a CSV; return its directory."""
+    directory = tmp_path_factory.mktemp('holdout')
+    assert kf_train_main(['simulate', '--scenario', 'rail', '--duration', '160', '--seed', '4',
+                          '-p', 'rail_gnss_model:=white', '--output',
+                          str(directory / 'run.csv')]) == 0
+    return directory
+
+
+@pytest.fixture()
+def bad_fit(monkeypatch):
+    """Make the fit return a setting with absurd noises (q_a = q_ℓ = 1 m²/s⁵)."""
+    real = tune_rail_module.fit_rail_noise
+
+    def fit(*args, **kwargs):
+        found = real(*args, **kwargs)
+        return found._replace(setting=found.setting._replace(
+            acceleration_noise=1.0, command_noise=1.0))
+    monkeypatch.setattr(tune_rail_module, 'fit_rail_noise', fit)
+
+
+def test_a_tuned_setting_worse_on_the_held_out_part_is_not_written(short_run, bad_fit,
+                                                                   capsys):
+    output = short_run / 'refused.yaml'
+    assert tune_main([str(short_run / 'run.csv'), '-o', str(output)]) == 0
+    out = capsys.readouterr().out
+    assert 'held-out (last 25 %)' in out
+    assert 'kept the start: on held-out (last 25 %) the tuned setting predicts worse' in out
+    assert not output.exists() and not (short_run / 'refused-rail.yaml').exists()
+    forced = short_run / 'forced.yaml'
+    assert tune_main([str(short_run / 'run.csv'), '-o', str(forced), '--force',
+                      '--validate', str(short_run / 'run.csv')]) == 0
+    out = capsys.readouterr().out
+    assert '--force: written although' in out
+    assert 'run.csv (after 10 s), ' in out       # the whole run, scored after its warm-up
+    assert forced.exists() and (short_run / 'forced-rail.yaml').exists()
+
+
+def test_the_hold_out_options_apply_to_the_rail_preset_only(short_run, capsys):
+    for option in (['--holdout', '0.1'], ['--force'], ['--validate', 'x.csv']):
+        with pytest.raises(SystemExit):
+            tune_main([str(short_run / 'run.csv'), '--preset', 'train', '-o',
+                       str(short_run / 'x.yaml')] + option)
+        assert 'applies to the rail preset only' in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        tune_main([str(short_run / 'run.csv'), '-o', str(short_run / 'x.yaml'),
+                   '--holdout', '1'])
+
+
+# -- the verdicts ------------------------------------------------------------------------
+
+def _report(e: np.ndarray, scale: float = 1.0):
+    """Return nis_consistency of innovations e·scale with S = 1."""
+    y = scale * e[:, None]
+    return nis_consistency(Innovations(y, np.ones((e.size, 1, 1))), 0.99)
+
+
+def test_the_verdict_is_silent_on_white_innovations_and_names_correlation():
+    rng = np.random.default_rng(20)
+    white = rng.standard_normal(20000)
+    assert model_verdict(_report(white)) == []
+    phi = 0.55
+    ar1 = np.empty_like(white)
+    ar1[0] = white[0]
+    for k in range(1, white.size):      # unit variance: sqrt(1 − φ²) on the new draw
+        ar1[k] = phi * ar1[k - 1] + math.sqrt(1.0 - phi ** 2) * white[k]
+    sentences = model_verdict(_report(ar1))
+    assert sentences[0].startswith('the model does not describe this data: innovations '
+                                   'are correlated (0.5')
+    assert 'time-correlated measurement error' in sentences[0]
+    assert 'alternate' in model_verdict(_report(ar1 * (-1.0) ** np.arange(white.size)))[0]
+
+
+def test_the_verdict_says_which_way_the_noise_is_wrong():
+    white = np.random.default_rng(21).standard_normal(20000)
+    assert model_verdict(_report(white, 0.5))[-1].endswith(
+        'the noise is set larger than the data show')
+    assert model_verdict(_report(white, 2.0))[-1].endswith(
+        'the noise is set smaller than the data show')
