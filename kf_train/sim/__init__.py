@@ -8,7 +8,8 @@ simulator node's live streams (:data:`SCENARIOS`, the rail run of
 scoring (:mod:`~kf_train.sim.rail_eval`) and its hindsight-tuned CV/CA baselines
 (:mod:`~kf_train.sim.rail_baselines`); :class:`FaultInjector` its seeded
 faults; :mod:`~kf_train.sim.baselines` the seeds' naive estimators;
-the rail scenario's GNSS receiver error model (:mod:`~kf_train.sim.gnss_receiver`,
+runs drawn from the rail IMM itself (:func:`sample_rail_model`); the rail scenario's GNSS
+receiver error model (:mod:`~kf_train.sim.gnss_receiver`,
 :mod:`~kf_train.sim.gnss_error`);
 :func:`white_noise_acceleration_scenario` a train under random force with known q and
 R (the data of the noise-estimation tests). Built on
@@ -30,6 +31,7 @@ from kf_train.sim.rail_baselines import PolynomialKF, tuned_baselines, TunedBase
 from kf_train.sim.rail_eval import HORIZON_S as RAIL_HORIZON_S
 from kf_train.sim.rail_eval import Score, Track, WARMUP_S as RAIL_WARMUP_S
 from kf_train.sim.rail_eval import score as score_predictions
+from kf_train.sim.rail_model_sample import sample_rail_model
 from kf_train.sim.rail_stream import RAIL_FAMILIES, rail_parameters, RailStream
 from kf_train.sim.sample import ScenarioSample
 from kf_train.sim.scenario_streams import (
@@ -48,7 +50,8 @@ __all__ = [
     'PolynomialKF', 'RAIL_FAMILIES',
     'RAIL_FAMILY_RANGES',
     'RAIL_HORIZON_S', 'rail_parameters', 'rail_run', 'rail_scenario', 'RAIL_WARMUP_S',
-    'RailParameters', 'RailRun', 'RailStream', 'Score', 'score_predictions', 'Track',
+    'RailParameters', 'RailRun', 'RailStream', 'sample_rail_model', 'Score',
+    'score_predictions', 'Track',
     'tuned_baselines', 'TunedBaseline', 'baselines', 'CAR_ACCELERATION_MPS2', 'car_scenario',
     'CarStream', 'CONTROL_NAMES',
     'cv_position_scenario', 'cv_position_velocity_scenario', 'DEFAULT_INITIAL_STATE',

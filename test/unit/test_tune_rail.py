@@ -14,6 +14,7 @@ from kf_train.estimator.live_presets import resolve_preset
 from kf_train.filters import chi2_mean_bounds, RailModel, RailModelParameters
 from kf_train.presets import load_rail_preset, RailPreset
 from kf_train.replay.bag import load_config
+from kf_train.sim import sample_rail_model
 from kf_train.sim.rail import rail_scenario
 from kf_train.tune.climb import derivatives, stencil
 import numpy as np
@@ -300,35 +301,10 @@ def test_a_noise_the_data_cannot_tell_from_zero_gets_zero_and_a_bound():
     assert q_l.value == pytest.approx(5e-5, rel=1e-4)
 
 
-def _sample_rail_model(params: RailModelParameters, rows: int, seed: int,
-                       dt_s: float = 0.1) -> Segment:
-    """
-    Return measurements drawn from the rail IMM's own model (regimes, dynamics, entry).
-
-    The regime switches at the model's rates (brake → stand only below stop_speed),
-    a switch applies RailModel.entry's transformation, the state moves by the regime's
-    F(dt) plus N(0, Q(dt)), and the position is measured with σ = noise_std_m. Unlike
-    the rail simulator's runs, these data carry the process noises the model has.
-    """
-    rng = np.random.default_rng(seed)
-    model = RailModel(params)
-    rates = params.rates()
-    x = np.array([0.0, 0.0, 0.0, 0.0, params.accelerate_mps2, params.brake_mps2])
-    regime, z = 0, np.empty(rows)
-    for k in range(rows):
-        r = rates[regime].copy()
-        if regime == 3:
-            r[0] = params.stop_rate_hz * float(x[1] <= params.stop_speed_mps)
-        if r.sum() > 0.0 and rng.random() < -math.expm1(-r.sum() * dt_s):
-            regime = int(rng.choice(4, p=r / r.sum()))
-            mean, cov = model.entry(regime, x, np.zeros((6, 6)))
-            x = rng.multivariate_normal(mean, cov, method='eigh') if cov.any() else mean
-        mode = model.modes[regime]
-        Q = mode.Q(dt_s)
-        x = mode.F(dt_s) @ x + (rng.multivariate_normal(np.zeros(6), Q, method='eigh')
-                                if Q.any() else 0.0)
-        z[k] = x[0] + rng.normal(0.0, params.noise_std_m)
-    return Segment(np.arange(1, rows + 1) * dt_s, z[:, None])
+def _sample_rail_model(params: RailModelParameters, rows: int, seed: int) -> Segment:
+    """Return a Segment drawn from the rail IMM's own model (kf_train.sim.sample_rail_model)."""
+    t, z = sample_rail_model(params, rows, seed)
+    return Segment(t, z[:, None])
 
 
 def test_noises_the_data_carry_are_found_from_a_start_100x_too_small():
