@@ -21,7 +21,6 @@ Figures only, no assertion.
 import argparse
 import dataclasses
 import sys
-import time
 
 from kf_train.batch import rail_log_likelihoods, RailNoise, Segment
 from kf_train.filters import RailModelParameters
@@ -43,8 +42,8 @@ def main() -> int:
                                 command_noise=TRUTH['command_noise'])
     names = list(TRUTH)
     start = RailNoise(base.acceleration_noise, base.command_noise, base.capability_noise, 1.0)
-    inside = {n: 0 for n in names}
-    at_zero = {n: 0 for n in names}
+    inside = dict.fromkeys(names, 0)
+    at_zero = dict.fromkeys(names, 0)
     seconds = []
     for seed in range(args.runs):
         t, z = sample_rail_model(truth, args.rows, seed)

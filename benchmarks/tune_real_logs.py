@@ -36,9 +36,9 @@ from typing import Dict, List, Tuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-import real_logs  # noqa: E402
 from kf_train.cli import tune as tune_cli  # noqa: E402
 from kf_train.sim.rail_eval import format_table  # noqa: E402
+import real_logs  # noqa: E402
 import yaml  # noqa: E402
 
 ESTIMATE = re.compile(r'^\s+(q_a|q_l|q_c|R)\s+\S+\s+\[[^\]]*\]\s+(\S+)', re.MULTILINE)
@@ -124,8 +124,8 @@ def main() -> int:
                     out = work / f'{a}-{len(answers)}.yaml'
                     answers.append((label, estimates(tune(bags[a], out, extra)[1])))
                 same = all(x[1] == answers[0][1] for x in answers)
-                agree.append((a, *(f'{label}: {found}' for label, found in answers),
-                               'yes' if same else 'NO'))
+                cells = [f'{label}: {values}' for label, values in answers]
+                agree.append((a, *cells, 'yes' if same else 'NO'))
     print('\nTuned on A (kf-train tune A.mcap, defaults as the start), replayed on B; '
           '2-s RMSE [m] against the fix 2 s later\n')
     print(format_table(('A', 'B', 'q_a', 'q_l', 'tune [s]', 'params file', 'B defaults',
