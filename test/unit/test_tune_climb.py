@@ -23,8 +23,8 @@ def _log(settings, names=NAMES):
         return np.log([[getattr(s, n) for n in names] for s in settings])
 
 
-def test_the_cheap_stencil_is_exact_on_a_quadratic_but_for_its_first_order_cross_terms():
-    """Gradient and diagonal exact on a quadratic; cross terms too (its third derivative is 0)."""
+def test_the_cheap_stencil_is_exact_on_a_quadratic():
+    """Gradient and Hessian exact on a quadratic (its third and fourth derivatives are 0)."""
     A = np.array([[-3.0, 0.5, 0.2], [0.5, -2.0, -0.4], [0.2, -0.4, -1.0]])
     b = np.array([0.3, -0.1, 2.0])
     v0 = np.array([0.1, -0.2, 0.3])
