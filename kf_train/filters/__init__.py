@@ -89,7 +89,7 @@ __all__ = [
 ]
 
 # numba compiles these on import (the jit extra): loaded on first use.
-_LAZY = ('rail_kernels',)
+_LAZY = ('rail_kernels', 'rail_likelihood_kernel')
 
 
 def __getattr__(name: str):
