@@ -29,10 +29,30 @@ StreamEstimator) to 1e-9 relative on simulated runs.
 
 Only noises that do not change the motion's transition F are varied here: the
 acceleration noise q_a, the command noise q_ℓ, the capability noise and the
-measurement variance R (:class:`RailNoise`); everything else is the preset's. R is
-the setting's, fixed: this is the likelihood of R itself, so the node's learned scale on
-R (``noise_window``, :mod:`kf_train.filters.noise_adaptation`) is off here, and the
-tests compare with a node whose ``noise_window`` is 0.
+measurement variance R (:class:`RailNoise`); everything else is the preset's.
+
+What the node runs on top of the IMM, each off by default (then R is the setting's,
+fixed, as the fit of R itself needs):
+
+* ``variances``: the variance r_k each message carries (a setting's
+  ``measurement_variance`` overrides them, as the node's parameter does);
+* ``adaptation``: R_k = s_k·r_k with s learned as the node learns it
+  (:mod:`kf_train.filters.noise_adaptation`, from the fused fixes' mixture y and S;
+  ``base.adaptation()`` is the preset's); the first fix starts with s = 1, R = r₀;
+* ``gate_threshold``: the χ² gate on y²/S (y²/(S + (1 − s) r) when s < 1, as
+  :meth:`~kf_train.filters.IMM.finish_update`'s ``gate_nis``). A gated fix is not
+  fused: the state (and the scale) stay the last fused fix's, and the next fix is
+  predicted from there, as in the node. It adds −½(γ + log S_gate + log 2π) to ℓ, the
+  density of N(0, S_gate) at the gate's edge: a robust treatment, continuous in y at
+  the gate, that charges an outlier a bounded amount whatever its size (as clutter in
+  a PDA filter), so that a setting is not rewarded for gating out fixes it explains badly
+  nor ruined by one 1-km fix.
+
+Not modelled: the lock-out and re-acquisition after ``max_consecutive_outliers``
+gated fixes in a row, measured speeds, out-of-sequence fixes (the tests stay clear of
+them). ``engine`` 'numba' runs the same recursion compiled
+(:mod:`kf_train.filters.rail_likelihood_kernel`, ~100x faster; the default ``auto``
+where numba is installed), 'numpy' this module's reference.
 """
 
 import dataclasses

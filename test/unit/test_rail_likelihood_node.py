@@ -76,7 +76,7 @@ def _node(stamps, segment, variances):
 
 @pytest.fixture(scope='module')
 def node_run():
-    """A 1200-fix run with isolated 60-m outliers, and what the node made of it."""
+    """Return a 1200-fix run with isolated 60-m outliers, and what the node made of it."""
     stamps, segment, variances = _run(11, 1200, outliers=range(150, 1200, 97))
     return segment, variances, _node(stamps, segment, variances)
 
@@ -122,8 +122,8 @@ def test_a_gated_fix_scores_the_edge_and_does_not_move_the_state():
     """One 1-km outlier: gated; the state, the next innovations and ℓ's other terms hold."""
     _, segment, variances = _run(13, 200)
     base = RailModelParameters()
-    kwargs = dict(innovations=True, variances=[variances], adaptation=base.adaptation(),
-                  gate_threshold=GATE, engine='numpy')
+    kwargs = {'innovations': True, 'variances': [variances],
+              'adaptation': base.adaptation(), 'gate_threshold': GATE, 'engine': 'numpy'}
     clean = rail_log_likelihoods(base, [segment], [RailNoise()], **kwargs)
     z = segment.z.copy()
     z[100] += 1000.0
@@ -155,7 +155,7 @@ def _numba_case():
 
 
 def test_the_compiled_likelihood_is_the_numpy_reference():
-    """numba against numpy: ℓ, the gated fixes, y, S and the scale path of every setting."""
+    """The compiled engine against numpy: ℓ, gated fixes, y, S, the scale path per setting."""
     pytest.importorskip('numba')
     segment, variances, settings = _numba_case()
     base = RailModelParameters()
