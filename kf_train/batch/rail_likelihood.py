@@ -410,7 +410,7 @@ def _compiled_pass(segment: Segment, model: _Model, reported: np.ndarray, noise,
         return unit.F, unit.acceleration, unit.command
     filters.rail_likelihood_kernel.segment_likelihoods(
         model.base, segment.t_s, segment.z[:, 0].copy(), reported, noise[:3],
-        adaptation or NoiseAdaptation(window=0), threshold, unit_matrices, state, result)
+        adaptation or NoiseAdaptation(window=0), threshold, unit_matrices, state, tuple(result))
     return result
 
 

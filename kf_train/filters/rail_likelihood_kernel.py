@@ -78,7 +78,7 @@ def _matrices(dt, series_dt, tau_s, stand_F, phi2, phi3, below, table_a, table_l
         dynamics(dt, tau_s, 0.0, 0.0, stand_F, phi2, phi3, below, table_a, scale, powers, F, Qa)
         dynamics(dt, tau_s, 0.0, 0.0, stand_F, phi2, phi3, below, table_l, scale, powers, F, Ql)
         return True
-    for i in range(big_dt.shape[0]):
+    for i in range(big_dt.shape[0] - 1, -1, -1):            # the newest first
         if big_dt[i] == dt:
             F[:] = big_F[i]
             Qa[:] = big_Qa[i]
@@ -317,8 +317,24 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
 def settings_pass(t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptation, threshold,
                   series_dt, dynamics_constants, predict_constants, big, units, state,
                   outputs, progress):
-    """Run every setting (in parallel) up to row ``stop``: :func:`_setting_rows`."""
+    """Run every setting up to row ``stop``, in parallel: :func:`_setting_rows`."""
     for k in numba.prange(q_a.shape[0]):
+        _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptation,
+                      threshold, series_dt, dynamics_constants, predict_constants, big,
+                      units, state, outputs, progress)
+
+
+@_jit
+def settings_resume(t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptation, threshold,
+                    series_dt, dynamics_constants, predict_constants, big, units, state,
+                    outputs, progress):
+    """
+    Resume the settings after a missing dt (a row or a few), serially.
+
+    Waking the threads of a parallel pass costs milliseconds on a loaded machine, and a
+    run of gated fixes asks for a new dt at every row.
+    """
+    for k in range(q_a.shape[0]):
         _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptation,
                       threshold, series_dt, dynamics_constants, predict_constants, big,
                       units, state, outputs, progress)
@@ -367,8 +383,8 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     series_dt, dynamics_constants, predict_constants = _constants(parameters)
     count, N = reported.shape
     steps = np.diff(t_s)
-    big_dt = sorted(set(steps[steps > series_dt].tolist()))
-    big = _big_tables(big_dt, unit_matrices)
+    big = _BigDts(unit_matrices)
+    big.add(steps[steps > series_dt])
     learning = np.array([float(adaptation.window), float(adaptation.prior),
                          adaptation.scale_min, adaptation.scale_max])
     progress = (np.ones(count, dtype=np.int64), np.zeros(count, dtype=np.int64),
@@ -378,12 +394,14 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     found = np.empty(chunk, dtype=np.bool_)
     for first in range(1, N, chunk):
         stop = min(first + chunk, N)
-        unit_rows(t_s, first, stop, series_dt, dynamics_constants, big, *units, found)
+        unit_rows(t_s, first, stop, series_dt, dynamics_constants, big.tables(), *units,
+                  found)
         assert found[:stop - first].all()          # every row's big dt is in ``big``
+        run = settings_pass
         while True:
-            settings_pass(t_s, z, reported, stop, *noises, parameters.stand_noise, learning,
-                          threshold, series_dt, dynamics_constants, predict_constants, big,
-                          units + (first,), state, outputs, progress)
+            run(t_s, z, reported, stop, *noises, parameters.stand_noise, learning, threshold,
+                series_dt, dynamics_constants, predict_constants, big.tables(),
+                units + (first,), state, outputs, progress)
             next_row, status, need_dt = progress
             if np.any((status != OK) & (status != NEED_MATRICES)):
                 k = int(np.nonzero((status != OK) & (status != NEED_MATRICES))[0][0])
@@ -391,17 +409,35 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
                                  f'{next_row[k]} (setting {k}); a noise is too large')
             if np.all(next_row >= stop):
                 break
-            big_dt = big_dt + sorted(set(need_dt[status == NEED_MATRICES].tolist()))
-            big = _big_tables(big_dt, unit_matrices)
+            big.add(need_dt[status == NEED_MATRICES])
+            run = settings_resume
             status[:] = OK
 
 
-def _big_tables(big_dt, unit_matrices: UnitMatrices) -> tuple:
-    """Return (dts, F, Q_a, Q_ℓ) of the dts beyond the series: the caller's quadrature."""
-    if not big_dt:
-        return (np.empty(0),) + tuple(np.empty((0, 4, 6, 6)) for _ in range(3))
-    return (np.array(big_dt, dtype=float),) + tuple(
-        np.array(m) for m in zip(*(unit_matrices(dt) for dt in big_dt)))
+class _BigDts:
+    """The unit F, Q_a, Q_ℓ of the dts beyond the series (the caller's quadrature), grown."""
+
+    def __init__(self, unit_matrices: UnitMatrices):
+        """Start empty, room for 64 dts (doubled as needed)."""
+        self.unit_matrices, self.count = unit_matrices, 0
+        self.dt = np.empty(64)
+        self.matrices = [np.empty((64, 4, 6, 6)) for _ in range(3)]
+
+    def add(self, dts: np.ndarray) -> None:
+        """Add the dts not held yet."""
+        held = set(self.dt[:self.count].tolist())
+        for dt in sorted(set(dts.tolist()) - held):
+            if self.count == self.dt.shape[0]:
+                self.dt = np.concatenate([self.dt, np.empty_like(self.dt)])
+                self.matrices = [np.concatenate([m, np.empty_like(m)]) for m in self.matrices]
+            self.dt[self.count] = dt
+            for table, matrix in zip(self.matrices, self.unit_matrices(dt)):
+                table[self.count] = matrix
+            self.count += 1
+
+    def tables(self) -> tuple:
+        """Return (dts, F, Q_a, Q_ℓ) held, for the kernels."""
+        return (self.dt[:self.count],) + tuple(m[:self.count] for m in self.matrices)
 
 
 def warm_up() -> None:
