@@ -1,10 +1,10 @@
 """
 What ``kf-train tune --preset rail`` costs: one pass of K settings, by engine, and a whole fit.
 
-Simulated metro runs (``--seed`` and the seeds after it, joined end to end into
-``--rows`` fixes at 10 Hz, σ = 1 m, stamps jittered by ±2 ms so that every step has a
-new dt) are given to :func:`kf_train.batch.rail_log_likelihoods` as the node runs them
-(the learned scale on R, the χ² gate at 0.9999) with K = 1, 9 and 27 settings, by the
+A simulated metro run (``--seed``, lasting ``--rows`` fixes at 10 Hz, σ = 1 m, stamps
+jittered by ±2 ms so that every step has a new dt) is given to
+:func:`kf_train.batch.rail_log_likelihoods` as the node runs it (the learned scale on
+R, the χ² gate at 0.9999) with K = 1, 9 and 27 settings, by the
 compiled engine (numba, ``kf_train.filters.rail_likelihood_kernel``) and by the numpy
 reference (on ``--numpy-rows`` of them: it costs ~0.5 ms a row); then the whole fit
 (:func:`kf_train.tune.rail_fit.fit_rail_noise`, the acceleration and command noises
@@ -13,17 +13,18 @@ loaded (or compiled) before the clock starts. It prints figures; nothing is asse
 (test/unit/test_rail_likelihood_node.py holds the engines to each other and to the node).
 Run: ``.venv/bin/python benchmarks/tune_rail_cost.py [--rows 30000]``.
 
-Measured 2026-11-28 (2-core machine shared with three other sessions' jobs, load
-average 2-4: absolute figures inflated): see the report of issue 20's likelihood part
-and docs/rail.md.
+Measured 2026-11-28 10:41 UTC (2-core machine shared with other sessions, load ~1),
+30,000 fixes: numba 0.19 s (K = 1), 0.74 s (K = 9), 2.5 s (K = 27); numpy on 2000 fixes
+546, 82 and 38 µs per row and setting; the whole fit on 6000 fixes 3.4 s (docs/rail.md).
 """
 
 import argparse
+import dataclasses
 import time
 
 from kf_train.batch import rail_log_likelihoods, RailNoise, Segment
 from kf_train.filters import numba_available, RailModelParameters
-from kf_train.sim.rail import rail_scenario
+from kf_train.sim.rail import family_parameters, rail_scenario
 from kf_train.tune import fit_rail_noise
 import numpy as np
 
@@ -31,16 +32,13 @@ GATE = 15.136705226623606         # χ²(1) at 0.9999, the node's default gate
 
 
 def _segment(seed: int, rows: int) -> Segment:
-    """Return ``rows`` fixes of metro runs seed, seed + 1, … joined end to end, jittered."""
-    t_parts, z_parts, t_end, z_end = [], [], 0.0, 0.0
-    while sum(part.shape[0] for part in t_parts) < rows:
-        scenario, _ = rail_scenario(seed=seed + len(t_parts), family='metro')
-        t_parts.append(scenario.t_s + t_end)
-        z_parts.append(scenario.z[:, 0] - scenario.z[0, 0] + z_end)
-        t_end, z_end = t_parts[-1][-1] + 0.1, z_parts[-1][-1]
-    t = np.concatenate(t_parts)[:rows]
+    """Return a metro run of ``seed`` lasting ``rows`` fixes at 10 Hz, stamps jittered."""
+    parameters = dataclasses.replace(family_parameters('metro', seed),
+                                     duration_s=rows / 10.0 + 1.0)
+    scenario, _ = rail_scenario(seed=seed, parameters=parameters)
+    t = scenario.t_s[:rows]
     t = t + np.random.default_rng(seed).uniform(-0.002, 0.002, t.shape[0])
-    return Segment(t, np.concatenate(z_parts)[:rows, None])
+    return Segment(t, scenario.z[:rows])
 
 
 def _pass_s(base, segment, count: int, engine: str, repeat: int) -> float:
@@ -72,7 +70,7 @@ def main() -> None:
     if numba_available():      # load (or compile) the kernel before timing
         rail_log_likelihoods(base, [Segment(segment.t_s[:50], segment.z[:50])],
                              [RailNoise()], engine='numba')
-    print(f"metro runs from seed {args.seed}, jittered stamps; the node's likelihood "
+    print(f"metro run seed {args.seed}, jittered stamps; the node's likelihood "
           '(learned scale on R, gate 0.9999)')
     for engine, data in engines:
         rows = data.t_s.shape[0] - 1
