@@ -8,6 +8,7 @@
 #                     holding a plain `pip install '.[plot,bag]'` (what core users get)
 #   make lint         only the ament_flake8 / ament_pep257 tests
 #   make jit-cache    compile (once) the rail IMM's numba kernels (kf_train.filters.rail_fast)
+#                     and the tuner's (kf_train.filters.rail_likelihood_kernel)
 #   make colcon       colcon build in a throwaway workspace ($(COLCON_WS))
 #   make ros2cli      install the `ros2` CLI and launch wheels from $(ROS2CLI_WHEELS)
 #                     into $(VENV) (when that folder exists, `make test` does it first)
@@ -98,7 +99,8 @@ lint: setup
 # Compile (once) or load the rail IMM's numba kernels, so that no test and no node
 # started by one pays the compile (tens of seconds) at its first fix; a no-op without numba.
 jit-cache: setup
-	$(PY) -c 'import kf_train.filters as f; f.numba_available() and f.FastRailModel().warm_up()'
+	$(PY) -c 'import kf_train.filters as f; f.numba_available() and \
+	  (f.FastRailModel().warm_up() or f.rail_likelihood_kernel.warm_up())'
 
 test-core: setup jit-cache
 	$(PY) -m pytest test/unit -q -p no:cacheprovider $(PYTEST_ARGS)

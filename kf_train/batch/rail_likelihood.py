@@ -29,23 +29,48 @@ StreamEstimator) to 1e-9 relative on simulated runs.
 
 Only noises that do not change the motion's transition F are varied here: the
 acceleration noise q_a, the command noise q_ℓ, the capability noise and the
-measurement variance R (:class:`RailNoise`); everything else is the preset's. R is
-the setting's, fixed: this is the likelihood of R itself, so the node's learned scale on
-R (``noise_window``, :mod:`kf_train.filters.noise_adaptation`) is off here, and the
-tests compare with a node whose ``noise_window`` is 0.
+measurement variance R (:class:`RailNoise`); everything else is the preset's.
+
+What the node runs on top of the IMM, each off by default (then R is the setting's,
+fixed, as the fit of R itself needs):
+
+* ``variances``: the variance r_k each message carries (a setting's
+  ``measurement_variance`` overrides them, as the node's parameter does);
+* ``adaptation``: R_k = s_k·r_k with s learned as the node learns it
+  (:mod:`kf_train.filters.noise_adaptation`, from the fused fixes' mixture y and S;
+  ``base.adaptation()`` is the preset's); the first fix starts with s = 1, R = r₀;
+* ``gate_threshold``: the χ² gate on y²/S (y²/(S + (1 − s) r) when s < 1, as
+  :meth:`~kf_train.filters.IMM.finish_update`'s ``gate_nis``). A gated fix is not
+  fused: the state (and the scale) stay the last fused fix's, and the next fix is
+  predicted from there, as in the node. It adds −½(γ + log S_gate + log 2π) to ℓ, the
+  density of N(0, S_gate) at the gate's edge: a robust treatment, continuous in y at
+  the gate, that charges an outlier a bounded amount whatever its size (as clutter in
+  a PDA filter), so that a setting is not rewarded for gating out fixes it explains badly
+  nor ruined by one 1-km fix.
+
+Not modelled: the lock-out and re-acquisition after ``max_consecutive_outliers``
+gated fixes in a row, measured speeds, out-of-sequence fixes (the tests stay clear of
+them). ``engine`` 'numba' runs the same recursion compiled
+(:mod:`kf_train.filters.rail_likelihood_kernel`, ~100x faster; the default ``auto``
+where numba is installed), 'numpy' this module's reference.
 """
 
 import dataclasses
 import math
 from typing import NamedTuple, Optional, Sequence
 
+from kf_train import filters
 from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
-    first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES, RailModel, RailModelParameters,
-    RateTransition, stop_probability, STOPPING)
+    first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES, NoiseAdaptation, NoiseScale,
+    numba_available, RailModel, RailModelParameters, RateTransition, stop_probability, STOPPING)
 import numpy as np
 
 STAND = MODE_NAMES.index('stand')
+ENGINES = ('auto', 'numba', 'numpy')
+"""How :func:`rail_log_likelihoods` runs: compiled (numba), the numpy reference, or numba
+where it is installed (auto)."""
+FIXED = NoiseScale()
 
 RAIL_NOISE_FIELDS = ('acceleration_noise', 'command_noise', 'capability_noise')
 """The RailModelParameters a :class:`RailNoise` varies (they only change Q)."""
@@ -78,11 +103,18 @@ class RailLikelihoods(NamedTuple):
     log_likelihood: np.ndarray
     """ℓ of each setting (K,)."""
     nis: np.ndarray
-    """(K, rows): the mixture innovation's NIS y²/S at every measurement after the first."""
+    """(K, rows): the mixture innovation's NIS y²/S at every measurement after the first.
+    The per-fix fields (K, rows) are filled with ``innovations``, else (K, 0)."""
     innovation: np.ndarray
     """(K, rows): the mixture innovation y = z − Σ c̄_j ẑ_j."""
     variance: np.ndarray
     """(K, rows): its variance S = Σ c̄_j (s_j + (ẑ_j − ẑ)²)."""
+    gated_count: np.ndarray
+    """(K,): how many fixes the χ² gate kept out, per setting."""
+    gated: np.ndarray
+    """(K, rows): whether each fix was gated out."""
+    scale: np.ndarray
+    """(K, rows): the learned scale s on R after each fix (1 without adaptation)."""
 
 
 class _Unit(NamedTuple):
@@ -221,100 +253,249 @@ def _update(means: np.ndarray, covs: np.ndarray, z: float, R: np.ndarray,
     return x, (P + P.swapaxes(-1, -2)) * 0.5, y, s
 
 
-def _noise_of(settings: Sequence[RailNoise], base: RailModelParameters, preset_variance: float):
-    """Return (q_a, q_ℓ, q_c, R) per setting, each (K,)."""
+def _noise_of(settings: Sequence[RailNoise], base: RailModelParameters):
+    """Return (q_a, q_ℓ, q_c, R override or NaN) per setting, each (K,)."""
     def column(name, default):
         return np.array([default if getattr(s, name) is None else float(getattr(s, name))
                          for s in settings])
     return (column('acceleration_noise', base.acceleration_noise),
             column('command_noise', base.command_noise),
             column('capability_noise', base.capability_noise),
-            column('measurement_variance', preset_variance))
+            column('measurement_variance', math.nan))
 
 
-def _segment_pass(segment: Segment, base: RailModelParameters, noise, keep_innovations: bool):
-    """Return (ℓ (K,), y (K, rows), S (K, rows)) of one segment (see rail_log_likelihoods)."""
-    q_a, q_l, q_c, R = noise
-    count = R.shape[0]
-    t, z = segment.t_s, segment.z[:, 0]
-    rows = max(t.shape[0] - 1, 0)
-    total = np.zeros(count)
-    ys, Ss = np.zeros((count, rows)), np.zeros((count, rows))
-    if rows == 0:
-        return total, ys, Ss
-    # first_measurement: position z₀ with variance R, the other states at their priors.
-    x0 = np.array([z[0], 0.0, 0.0, 0.0, base.accelerate_mps2, base.brake_mps2])
-    means = np.tile(x0, (count, 4, 1))
-    covs = np.tile(base.initial_covariance(1.0), (count, 4, 1, 1))
-    covs[:, :, 0, 0] = R[:, None]
-    probabilities = np.full((count, 4), 0.25)
-    entry, rates = _entry(RailModel(base)), RateTransition(base.rates())
-    stop_rates = base.rates()
-    identity = np.tile(np.eye(6), (count, 4, 1, 1))
-    units, bases = _UnitModels(base), {}
-    weights = (q_a[:, None, None, None], q_l[:, None, None, None], q_c[:, None, None, None])
-    dts = np.diff(t)
-    for k in range(rows):
-        dt = float(dts[k])
-        unit = units(dt)
-        if dt not in bases:
-            bases[dt] = rates.matrix(dt)
-        matrix = _transition(bases[dt], base, stop_rates, dt, means, covs)
-        cbar, mixed_x, mixed_P = _mix(matrix, probabilities, means, covs, entry)
+class _Model:
+    """The preset's constant parts, per dt, and the settings' noises, for the numpy pass."""
+
+    def __init__(self, base: RailModelParameters, noise):
+        """Keep the entry rule, rates, unit matrices and the noises q_a, q_ℓ, q_c (K,)."""
+        self.base = base
+        self.entry, self.rates = _entry(RailModel(base)), RateTransition(base.rates())
+        self.stop_rates = base.rates()
+        self.units, self.bases = _UnitModels(base), {}
+        self.weights = tuple(q[:, None, None, None] for q in noise[:3])
+
+    def predict(self, dt: float, chosen, means: np.ndarray, covs: np.ndarray,
+                probabilities: np.ndarray):
+        """Return (c̄, x⁻, P⁻) of the settings ``chosen`` (an index or slice) over dt."""
+        unit, base = self.units(dt), self.base
+        if dt not in self.bases:
+            self.bases[dt] = self.rates.matrix(dt)
+        matrix = _transition(self.bases[dt], base, self.stop_rates, dt, means, covs)
+        cbar, mixed_x, mixed_P = _mix(matrix, probabilities, means, covs, self.entry)
         cbar = cbar / cbar.sum(axis=1, keepdims=True)                # as IMM.predict
-        Q = weights[0] * unit.acceleration + weights[1] * unit.command + \
-            weights[2] * unit.capability + base.stand_noise * unit.stand
+        q_a, q_l, q_c = (w[chosen] for w in self.weights)
+        Q = q_a * unit.acceleration + q_l * unit.command + q_c * unit.capability + \
+            base.stand_noise * unit.stand
         means = np.matmul(unit.F, mixed_x[..., None])[..., 0]        # x⁻ = F x
         covs = np.matmul(np.matmul(unit.F, mixed_P), unit.F_transposed) + Q  # F P Fᵀ + Q
-        covs = (covs + covs.swapaxes(-1, -2)) * 0.5
-        means, covs, y, s = _update(means, covs, float(z[k + 1]), R, identity)
-        means = hold_velocity(means, covs)                            # no reversal
-        logs = np.log(cbar) - 0.5 * (y * y / s + np.log(s) + LOG_2PI)  # log c̄_j N(y_j; s_j)
-        top = logs.max(axis=1, keepdims=True)
-        w = np.exp(logs - top)
-        mass = w.sum(axis=1)
-        total += top[:, 0] + np.log(mass)                            # log Σ_j c̄_j N(y_j; s_j)
-        probabilities = w / mass[:, None]                            # μ_j ∝ c̄_j Λ_j
-        if keep_innovations:
-            ybar = np.einsum('kj,kj->k', cbar, y)                    # y = z − Σ c̄_j ẑ_j
-            d = y - ybar[:, None]
-            ys[:, k] = ybar
-            Ss[:, k] = np.einsum('kj,kj->k', cbar, s + d * d)        # Σ c̄_j (s_j + d_j²)
+        return cbar, means, (covs + covs.swapaxes(-1, -2)) * 0.5
+
+
+def _first(base: RailModelParameters, z0: float, r0: np.ndarray):
+    """Return (means, covs, probabilities) after first_measurement: z₀ with variance r₀."""
+    count = r0.shape[0]
+    x0 = np.array([z0, 0.0, 0.0, 0.0, base.accelerate_mps2, base.brake_mps2])
+    means = np.tile(x0, (count, 4, 1))
+    covs = np.tile(base.initial_covariance(1.0), (count, 4, 1, 1))
+    covs[:, :, 0, 0] = r0[:, None]
+    return means, covs, np.full((count, 4), 0.25)
+
+
+def _predict_all(model: _Model, dts: np.ndarray, means, covs, probabilities):
+    """Return (c̄, x⁻, P⁻) of every setting, each over its own dt (the time since its last fix)."""
+    if np.all(dts == dts[0]):
+        return model.predict(float(dts[0]), slice(None), means, covs, probabilities)
+    cbar, predicted_x, predicted_P = (np.empty_like(a) for a in (probabilities, means, covs))
+    for dt in np.unique(dts).tolist():
+        chosen = np.nonzero(dts == dt)[0]
+        cbar[chosen], predicted_x[chosen], predicted_P[chosen] = model.predict(
+            dt, chosen, means[chosen], covs[chosen], probabilities[chosen])
+    return cbar, predicted_x, predicted_P
+
+
+def _mixture_log_likelihood(cbar: np.ndarray, y: np.ndarray, s: np.ndarray):
+    """Return (log Σ_j c̄_j N(y_j; s_j) (K,), posterior μ (K, 4)), in the log domain."""
+    logs = np.log(cbar) - 0.5 * (y * y / s + np.log(s) + LOG_2PI)     # log c̄_j N(y_j; s_j)
+    top = logs.max(axis=1, keepdims=True)
+    w = np.exp(logs - top)
+    mass = w.sum(axis=1)
+    return top[:, 0] + np.log(mass), w / mass[:, None]                # μ_j ∝ c̄_j Λ_j
+
+
+def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
+                  adaptation: Optional[NoiseAdaptation], threshold: float):
+    """Return _SegmentResult of one segment (see rail_log_likelihoods), the numpy reference."""
+    count, N = reported.shape
+    t, z = segment.t_s, segment.z[:, 0]
+    rows = max(N - 1, 0)
+    result = _SegmentResult.empty(count, rows)
+    if rows == 0:
+        return result
+    means, covs, probabilities = _first(model.base, float(z[0]), reported[:, 0])
+    identity = np.tile(np.eye(6), (count, 4, 1, 1))
+    noises = [FIXED] * count
+    scale = np.ones(count)
+    last_t = np.full(count, t[0])
+    for k in range(rows):
+        r = reported[:, k + 1]
+        cbar, predicted_x, predicted_P = _predict_all(model, t[k + 1] - last_t, means, covs,
+                                                      probabilities)
+        R = np.where(scale == 1.0, r, r * scale)                     # noise_in_use: s r
+        x, P, y, s = _update(predicted_x, predicted_P, float(z[k + 1]), R, identity)
+        x = hold_velocity(x, P)                                       # no reversal
+        ll, posterior = _mixture_log_likelihood(cbar, y, s)
+        ybar = np.einsum('kj,kj->k', cbar, y)                        # y = z − Σ c̄_j ẑ_j
+        d = y - ybar[:, None]
+        S = np.einsum('kj,kj->k', cbar, s + d * d)                   # Σ c̄_j (s_j + d_j²)
+        # The gate's variance: with s < 1 the R given (IMM.finish_update's gate_nis).
+        gate_S = np.where(scale < 1.0, S + (1.0 - scale) * r, S)
+        gate_nis = np.where(scale < 1.0, ybar * ybar / gate_S, ybar * (ybar / S))
+        fused = ~(gate_nis > threshold)
+        result.add(k, ll, fused, threshold, gate_S, ybar, S)
+        means = np.where(fused[:, None, None], x, means)
+        covs = np.where(fused[:, None, None, None], P, covs)
+        probabilities = np.where(fused[:, None], posterior, probabilities)
+        last_t = np.where(fused, t[k + 1], last_t)
+        if adaptation is not None:
+            for i in np.nonzero(fused)[0].tolist():      # the node's own rule, fix by fix
+                noises[i] = adaptation.learn(noises[i], float(ybar[i]), float(S[i]),
+                                             float(r[i]))
+                scale[i] = noises[i].scale
+        result.scale[:, k] = scale
     if not (np.all(np.isfinite(means)) and np.all(np.isfinite(covs))):
         raise ValueError('the rail filter produced a non-finite state; a noise is too large')
-    return total, ys, Ss
+    return result
+
+
+class _SegmentResult(NamedTuple):
+    """One segment's figures per setting (K): ℓ, gated count; per fix (K, rows): the rest."""
+
+    total: np.ndarray
+    gated_count: np.ndarray
+    y: np.ndarray
+    S: np.ndarray
+    gated: np.ndarray
+    scale: np.ndarray
+
+    @classmethod
+    def empty(cls, count: int, rows: int) -> '_SegmentResult':
+        """Return zeros (the scales ones) for ``count`` settings and ``rows`` fixes."""
+        return cls(np.zeros(count), np.zeros(count, dtype=np.int64), np.zeros((count, rows)),
+                   np.zeros((count, rows)), np.zeros((count, rows), dtype=bool),
+                   np.ones((count, rows)))
+
+    def add(self, k: int, ll: np.ndarray, fused: np.ndarray, threshold: float,
+            gate_S: np.ndarray, y: np.ndarray, S: np.ndarray) -> None:
+        """Add fix k: ℓ's term (a gated fix: the density at the gate's edge), y, S, gated."""
+        edge = -0.5 * (threshold + np.log(gate_S) + LOG_2PI)        # N(√γ; 0, S_gate)
+        self.total[:] += np.where(fused, ll, edge)
+        self.gated_count[:] += ~fused
+        self.gated[:, k] = ~fused
+        self.y[:, k], self.S[:, k] = y, S
+
+
+def _compiled_pass(segment: Segment, model: _Model, reported: np.ndarray, noise,
+                   adaptation: Optional[NoiseAdaptation], threshold: float) -> _SegmentResult:
+    """Return _SegmentResult of one segment by the compiled kernel (the numpy pass's equal)."""
+    count, N = reported.shape
+    result = _SegmentResult.empty(count, max(N - 1, 0))
+    if N < 2:
+        return result
+    state = _first(model.base, float(segment.z[0, 0]), reported[:, 0]) + (
+        np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (count, 1)), np.full(count, segment.t_s[0]))
+
+    def unit_matrices(dt_s: float):
+        unit = model.units(dt_s)
+        return unit.F, unit.acceleration, unit.command
+    filters.rail_likelihood_kernel.segment_likelihoods(
+        model.base, segment.t_s, segment.z[:, 0].copy(), reported, noise[:3],
+        adaptation or NoiseAdaptation(window=0), threshold, unit_matrices, state, tuple(result))
+    return result
+
+
+def _reported(noise, variances: Optional[np.ndarray], preset_variance: float,
+              rows: int) -> np.ndarray:
+    """Return r (K, N): the setting's R where set, else the rows' variances (or the preset's)."""
+    override = noise[3]
+    given = np.full(rows, preset_variance) if variances is None else \
+        np.asarray(variances, dtype=float)
+    if given.shape != (rows,):
+        raise ValueError(f'variances must hold one (N,) array per segment, got {given.shape} '
+                         f'for {rows} rows')
+    reported = np.where(np.isnan(override)[:, None], given[None, :], override[:, None])
+    if not (np.all(np.isfinite(reported)) and np.all(reported > 0.0)):
+        raise ValueError('the measurement variances must be finite numbers > 0')
+    return reported
+
+
+def _engine(engine: str) -> str:
+    """Return 'numba' or 'numpy' for ``engine`` ('auto': numba where it is installed)."""
+    if engine not in ENGINES:
+        raise ValueError(f'engine must be one of {ENGINES}, got {engine!r}')
+    if engine == 'auto':
+        return 'numba' if numba_available() else 'numpy'
+    if engine == 'numba' and not numba_available():
+        raise ValueError("engine 'numba' needs numba (the jit extra: pip install "
+                         "'kf_train[jit]')")
+    return engine
 
 
 def rail_log_likelihoods(base: RailModelParameters, segments: Sequence[Segment],
                          settings: Sequence[RailNoise], preset_variance: float = None,
-                         innovations: bool = False) -> RailLikelihoods:
+                         innovations: bool = False, *,
+                         variances: Optional[Sequence[np.ndarray]] = None,
+                         adaptation: Optional[NoiseAdaptation] = None,
+                         gate_threshold: float = math.inf,
+                         engine: str = 'auto') -> RailLikelihoods:
     """
     Return ℓ (and optionally the mixture innovations) of each setting, in one pass.
 
     ``base``: the preset's RailModelParameters; ``segments``: one per object (each
     started by its first measurement, as the node's first_measurement); ``settings``:
-    K :class:`RailNoise` (a None field keeps ``base``'s value, R ``preset_variance``,
-    default base.noise_std_m²). Raises ValueError for a negative noise or R <= 0.
+    K :class:`RailNoise` (a None field keeps ``base``'s value). R given per fix: the
+    setting's measurement_variance when set (the node's override), else ``variances``
+    (one (N,) array per segment: the messages'), else ``preset_variance`` (default
+    base.noise_std_m²). ``adaptation`` (e.g. ``base.adaptation()``): the node's learned
+    scale on R; ``gate_threshold``: its χ² gate (see the module docstring); ``engine``:
+    'numba', 'numpy' or 'auto' (numba where installed). Raises ValueError for a negative
+    noise or an R <= 0.
     """
     if not settings:
         raise ValueError('settings must hold at least one RailNoise')
+    compiled = _engine(engine) == 'numba'
     variance = base.noise_std_m ** 2 if preset_variance is None else float(preset_variance)
-    noise = _noise_of(settings, base, variance)
+    noise = _noise_of(settings, base)
     for name, values in zip(RAIL_NOISE_FIELDS + ('measurement_variance',), noise):
+        values = values[~np.isnan(values)] if name == 'measurement_variance' else values
         if not np.all(np.isfinite(values)) or np.any(values < 0.0):
             raise ValueError(f'{name} must be finite numbers >= 0, got {values.tolist()}')
-    if np.any(noise[3] <= 0.0):
-        raise ValueError(f'measurement_variance must be > 0, got {noise[3].tolist()}')
-    totals, ys, Ss = np.zeros(len(settings)), [], []
-    for segment in segments:
+    if variances is not None and len(variances) != len(segments):
+        raise ValueError(f'variances must hold one array per segment ({len(segments)}), got '
+                         f'{len(variances)}')
+    threshold = float(gate_threshold)
+    if not threshold > 0.0:
+        raise ValueError(f'gate_threshold must be > 0, got {gate_threshold!r}')
+    adaptation = adaptation if adaptation is not None and adaptation.enabled else None
+    model, results = _Model(base, noise), []
+    for i, segment in enumerate(segments):
         if segment.z.ndim != 2 or segment.z.shape[1] != 1:
             raise ValueError(f'rail segments measure the position alone: z must be (N, 1), '
                              f'got {segment.z.shape}')
+        reported = _reported(noise, None if variances is None else variances[i], variance,
+                             segment.t_s.shape[0])
+        if compiled:
+            results.append(_compiled_pass(segment, model, reported, noise, adaptation,
+                                          threshold))
+            continue
         with np.errstate(divide='ignore'):     # log c̄_j = −inf for an unreachable regime
-            total, y, S = _segment_pass(segment, base, noise, innovations)
-        totals += total
-        ys.append(y)
-        Ss.append(S)
-    y, S = np.concatenate(ys, axis=1), np.concatenate(Ss, axis=1)
+            results.append(_segment_pass(segment, model, reported, adaptation, threshold))
+    results = results or [_SegmentResult.empty(len(settings), 0)]
+    y, S = (np.concatenate([getattr(r, name) for r in results], axis=1) for name in 'yS')
     nis = np.divide(y * y, S, out=np.zeros_like(y), where=S > 0.0)
-    return RailLikelihoods(totals, nis, y, S)
+    gated = np.concatenate([r.gated for r in results], axis=1)
+    scale = np.concatenate([r.scale for r in results], axis=1)
+    if not innovations:
+        y, S, nis, gated, scale = (a[:, :0] for a in (y, S, nis, gated, scale))
+    return RailLikelihoods(sum(r.total for r in results), nis, y, S,
+                           sum(r.gated_count for r in results), gated, scale)

@@ -10,7 +10,8 @@ distribution (:mod:`.chi2`), the input checks (:mod:`.validation`), time units
 (:mod:`.units`), the family behind one interface (:mod:`.family`, make_filter), and
 the model contract the streaming estimator runs (:mod:`.contract`, StepModel); the
 rail IMM (:mod:`.rail_model`) and its compiled form (:mod:`.rail_fast`, whose numba
-kernels, :mod:`.rail_kernels`, load on first use). Other floors import from here, never
+kernels, :mod:`.rail_kernels`, load on first use, as does the tuner's compiled
+likelihood, :mod:`.rail_likelihood_kernel`). Other floors import from here, never
 from the modules.
 """
 
@@ -89,11 +90,11 @@ __all__ = [
 ]
 
 # numba compiles these on import (the jit extra): loaded on first use.
-_LAZY = ('rail_kernels',)
+_LAZY = ('rail_kernels', 'rail_likelihood_kernel')
 
 
 def __getattr__(name: str):
-    """Import the compiled rail kernels on first use (PEP 562): they need numba."""
+    """Import the compiled rail modules on first use (PEP 562): they need numba."""
     if name in _LAZY:
         return importlib.import_module(f'kf_train.filters.{name}')
     raise AttributeError(f'module {__name__!r} has no attribute {name!r}')
