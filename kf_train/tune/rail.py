@@ -26,6 +26,7 @@ import os
 from typing import List, Optional, Tuple
 
 from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
+from kf_train.filters import chi2_quantile
 from kf_train.io import check_output_path, write_atomic
 from kf_train.presets import (
     is_rail_preset_file, load_rail_preset, rail_preset_from_mapping, RAIL_PRESET_NAME,
@@ -35,8 +36,9 @@ from kf_train.tune.inputs import reader_for, TopicOptions, TuneInput
 from kf_train.tune.linear import carried_variances, params_yaml, TuneOptions
 from kf_train.tune.rail_fit import fit_rail_noise, MIN_GAIN, RailFit
 from kf_train.tune.validation import (
-    Comparison, comparison_lines, Holdout, MIN_SPLIT_S, model_verdict, score_setting,
-    segment_variances, split_holdout, training_input, warm_windows, worse_reason)
+    Comparison, comparison_lines, Holdout, MIN_SPLIT_S, model_verdict, node_settings,
+    score_setting, segment_variances, split_holdout, training_input, warm_windows,
+    worse_reason)
 import numpy as np
 
 CHECK_CONFIDENCE = 0.99
@@ -198,8 +200,14 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
         raise ValueError('no innovations to estimate from: the data need at least 3 rows')
     base = preset.parameters
 
+    # The node's own likelihood: the rows' variances, its learned scale on R, its gate.
+    variances = segment_variances(segments, data.measurement_variances)
+    gate = chi2_quantile(node_settings(preset.source).gate_probability, 1)
+
     def likelihoods(settings):
-        return rail_log_likelihoods(base, segments, settings).log_likelihood
+        return rail_log_likelihoods(base, segments, settings, variances=variances,
+                                    adaptation=base.adaptation(),
+                                    gate_threshold=gate).log_likelihood
 
     def check(setting):
         tuned = preset._replace(parameters=setting.parameters(base))

@@ -40,6 +40,8 @@ too few 2-s predictions (and the filter's warm-up) to judge anything."""
 
 Window = Optional[Tuple[float, float]]
 """The times [start, end) [s] whose predictions are scored; None: none of the segment's."""
+WORSE_TOLERANCE = 2e-3
+"""An RMSE larger by less than this share (0.2 %, below the report's 3 digits) is a tie."""
 
 
 class Holdout(NamedTuple):
@@ -304,17 +306,18 @@ def worse_reason(comparison: Comparison) -> Optional[str]:
     """
     Return why the tuned setting is worse than the start there, or None.
 
-    Worse: a larger 2-s RMSE against the later fix, or against the truth where there
-    is truth, or more lock-outs (resets and reacquisitions). Ties are not worse.
+    Worse: a 2-s RMSE against the later fix, or against the truth where there is truth,
+    larger by more than WORSE_TOLERANCE, or more lock-outs (resets and reacquisitions).
+    Ties are not worse.
     """
     b, a = comparison.before, comparison.after
     if not b.count:
         return None
-    if a.rmse_m > b.rmse_m:
+    if a.rmse_m > b.rmse_m * (1.0 + WORSE_TOLERANCE):
         return (f'on {comparison.label} the tuned setting predicts worse (2-s RMSE '
                 f'{_m(a.rmse_m)} against {_m(b.rmse_m)})')
     if (b.truth_rmse_m is not None and a.truth_rmse_m is not None
-            and a.truth_rmse_m > b.truth_rmse_m):
+            and a.truth_rmse_m > b.truth_rmse_m * (1.0 + WORSE_TOLERANCE)):
         return (f'on {comparison.label} the tuned setting predicts the truth worse (2-s '
                 f'RMSE {_m(a.truth_rmse_m)} against {_m(b.truth_rmse_m)})')
     if a.resets + a.reacquisitions > b.resets + b.reacquisitions:

@@ -150,9 +150,13 @@ def test_tune_rail_from_a_csv_writes_a_tuned_rail_preset(tuned_csv):
     assert set(params) == {'preset', 'measurement_variance'}   # a table carries no R
     preset = resolve_preset(params['preset'])
     assert isinstance(preset, RailPreset) and preset.name == 'rail-tuned'
-    # R: the sample variance of 2399 N(0, 1) noises has sd √(2/2399) ≈ 0.029; its
-    # estimate through the filter is as good: 5 sd.
-    assert params['measurement_variance'] == pytest.approx(1.0, abs=5 * math.sqrt(2 / 2399))
+    # R: the node learns a scale on R online (noise_window), and tune maximises the
+    # node's likelihood, so R is weakly identified: its 95 % interval holds the truth, 1,
+    # and is narrower than a factor of 10 (1800 fixes, 1350 of them in the fit).
+    row = next(line for line in text.splitlines() if 'measurement_variance [m²]' in line)
+    low, high = (float(v) for v in row.split('[')[2].split(']')[0].split(','))
+    assert low <= 1.0 <= high and high / low < 10.0, row
+    assert low <= params['measurement_variance'] <= high
     # The preset keeps σ = √R: R comes back through a square root and a square (2 ulps).
     assert preset.R[0, 0] == pytest.approx(params['measurement_variance'], rel=1e-15)
     after = text.split('NIS, mean of')[1].split('\n')[0]
