@@ -4,10 +4,12 @@
 The rail preset (docs/rail.md) has no white-noise acceleration density q: each moving
 regime has an acceleration noise q_a and a command noise q_ℓ (``acceleration_noise``,
 ``command_noise``), and the measurement variance R. This module estimates those the
-data can identify by maximum likelihood of the IMM's innovations
-(:mod:`kf_train.batch.rail_likelihood`, maximised by :mod:`kf_train.tune.rail_fit`),
-checks the node's own filter before and after (:func:`kf_train.batch.rail_checks.rail_check`:
-NIS, whiteness, and with truth the 2-s prediction RMSE and 2σ coverage), and writes
+data can identify by maximum likelihood of the innovations of the filter the node runs
+(:mod:`kf_train.batch.rail_likelihood`: the rows' variances, the learned scale on R, the
+χ² gate; maximised by :mod:`kf_train.tune.rail_fit`), checks the node's innovations
+before and after (NIS, whiteness, a verdict in words), scores the node untuned and tuned
+on the held-out end of the input (and ``--validate``'s: :mod:`kf_train.tune.validation`),
+and, unless the tuned setting predicts worse there, writes
 
 * a tuned rail preset file (``--preset-output``, by default next to PARAMS.yaml as
   ``<name>-rail.yaml``): the preset with the tuned noises, which the node reads through
@@ -25,7 +27,7 @@ import math
 import os
 from typing import List, Optional, Tuple
 
-from kf_train.batch import nis_consistency, rail_check, rail_log_likelihoods, RailNoise
+from kf_train.batch import Innovations, nis_consistency, rail_log_likelihoods, RailNoise
 from kf_train.filters import chi2_quantile
 from kf_train.io import check_output_path, write_atomic
 from kf_train.presets import (
@@ -122,45 +124,60 @@ def _fit_lines(fit: RailFit, confidence: float) -> List[str]:
     return lines
 
 
-def _check_lines(before, after, ll_before: float, ll_after: float) -> List[str]:
-    """Return the NIS, whiteness and prediction lines."""
-    b = nis_consistency(before.innovations, CHECK_CONFIDENCE)
-    a = nis_consistency(after.innovations, CHECK_CONFIDENCE)
-    lines = [f'log-likelihood: before {ll_before:.2f}, after {ll_after:.2f}',
-             f'NIS, mean of {a.count} mixture innovations ({CHECK_CONFIDENCE:.0%} χ² bounds '
-             f'[{a.low:.4g}, {a.high:.4g}]): before {b.mean_nis:.4g} ({b.verdict}), after '
-             f'{a.mean_nis:.4g} ({a.verdict})',
+def _consistency(run, k: int):
+    """Return nis_consistency of setting k's fused innovations (gated fixes left out)."""
+    fused = ~run.gated[k] if run.gated.shape[1] else np.ones(run.nis.shape[1], dtype=bool)
+    return nis_consistency(Innovations(run.innovation[k, fused][:, None],
+                                       run.variance[k, fused][:, None, None]),
+                           CHECK_CONFIDENCE)
+
+
+def _check_lines(run) -> List[str]:
+    """Return ℓ, the NIS and whiteness lines of the node's run of [start, tuned]."""
+    b, a = _consistency(run, 0), _consistency(run, 1)
+    ll = run.log_likelihood
+    lines = [f'log-likelihood: before {ll[0]:.2f}, after {ll[1]:.2f}',
+             f'NIS, mean of {a.count} mixture innovations the node fused ({CHECK_CONFIDENCE:.0%}'
+             f' χ² bounds [{a.low:.4g}, {a.high:.4g}]): before {b.mean_nis:.4g} ({b.verdict}),'
+             f' after {a.mean_nis:.4g} ({a.verdict})',
+             f'fixes the χ² gate rejected: before {int(run.gated_count[0])}, after '
+             f'{int(run.gated_count[1])}',
              f'lag-1 autocorrelation of the innovations ({CHECK_CONFIDENCE:.0%} bound '
              f'±{a.lag1_bound:.3g}): before {b.lag1:.3g}, after {a.lag1:.3g}']
-    lines += [f'verdict: {sentence}' for sentence in model_verdict(a)]
-    pb, pa = before.prediction, after.prediction
-    if pa is None:
-        lines.append('prediction RMSE: no truth in the input (true_position, true_velocity '
-                     'columns, or --truth-topic)')
-    else:
-        units = {'position': 'm', 'velocity': 'm/s'}
-        parts = [f'{n} before {_number(pb.rmse[n])} {units[n]}, after {_number(pa.rmse[n])} '
-                 f'{units[n]}' for n in pa.rmse]
-        lines.append(f'{pa.horizon_s:g}-s prediction RMSE ({pa.count} rows with truth): '
-                     + '; '.join(parts))
-        lines.append(f'{pa.horizon_s:g}-s prediction 2σ coverage of the position: before '
-                     f'{100 * pb.coverage:.1f} %, after {100 * pa.coverage:.1f} %')
-    return lines
+    return lines + [f'verdict: {sentence}' for sentence in model_verdict(a)]
 
 
 def _setup(args: TuneOptions, preset: RailPreset, noises: List[str], data):
-    """Return (data, notes, fixed setting, start setting, R written?)."""
+    """
+    Return (data, notes, fixed setting, names estimated, start setting, R written?).
+
+    A bag's rows carry their variances, and the node uses each (times its learned
+    scale): the fit does too, and estimates no R (measurement_variance None) unless
+    ``--estimate-r``. A table carries none: R is estimated (started from the second
+    differences) unless ``--fix-r``; the node untuned uses the preset's R.
+    """
     carried, note = carried_variances(data, args.estimate_r)
+    rows_carry = data.measurement_variances is not None and not args.estimate_r
+    if rows_carry and carried is None:
+        low, high = (float(f(data.measurement_variances)) for f in (np.min, np.max))
+        note = (f'the messages carry varying variances ({low:.4g} to {high:.4g}): the node '
+                'uses each, times its learned scale, and so does the fit (--estimate-r '
+                'estimates one R instead)')
     notes = [line for line in (data.summary, note) if line]
-    fixed_r = args.fix_r[0] if args.fix_r is not None else (carried[0] if carried else None)
-    names = list(noises) + (['measurement_variance'] if fixed_r is None else [])
     params = preset.parameters
+    if args.fix_r is not None:
+        start_r = args.fix_r[0]
+    elif rows_carry:
+        start_r = None                                       # the rows' own variances
+    else:
+        start_r = _moment_variance(data.segments)
+    estimate_r = args.fix_r is None and not rows_carry
+    names = list(noises) + (['measurement_variance'] if estimate_r else [])
     fixed = RailNoise(params.acceleration_noise, params.command_noise, params.capability_noise,
-                      fixed_r if fixed_r is not None else _moment_variance(data.segments))
-    before_r = carried_variances(data, False)[0]
-    before = fixed._replace(measurement_variance=before_r[0] if before_r
+                      start_r)
+    before = fixed._replace(measurement_variance=None if rows_carry
                             else params.noise_std_m ** 2)
-    return data, notes, fixed, names, before, args.fix_r is not None or fixed_r is None
+    return data, notes, fixed, names, before, args.fix_r is not None or estimate_r
 
 
 def _comments(args: TuneOptions, fit: RailFit, rows: int, spec_label: str, preset_output: str,
@@ -209,9 +226,6 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
                                     adaptation=base.adaptation(),
                                     gate_threshold=gate).log_likelihood
 
-    def check(setting):
-        tuned = preset._replace(parameters=setting.parameters(base))
-        return rail_check(tuned, segments, setting.measurement_variance, horizon_s)
     shipped = load_rail_preset().parameters          # the grid's centre, however started
     defaults = fixed._replace(acceleration_noise=shipped.acceleration_noise,
                               command_noise=shipped.command_noise,
@@ -219,8 +233,9 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     fit = fit_rail_noise(likelihoods, names, fixed, fixed, rows, args.confidence,
                          other_starts=[] if defaults == fixed else [('the defaults', defaults)],
                          grid_centre=defaults, start_label=spec_label)
-    horizon_s = args.horizon or preset.horizon_s or 2.0
-    lls = likelihoods([before, fit.setting])
+    run = rail_log_likelihoods(base, segments, [before, fit.setting], variances=variances,
+                               adaptation=base.adaptation(), gate_threshold=gate,
+                               innovations=True)
     params = {'preset': os.path.abspath(preset_output)}
     if r_written:
         params['measurement_variance'] = float(fit.setting.measurement_variance)
@@ -229,7 +244,7 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
          f'({len(segments)} object{"s" * (len(segments) != 1)}), {rows} innovations, '
          'initialization first_measurement']
         + [f'input: {line}' for line in notes] + _fit_lines(fit, args.confidence)
-        + _check_lines(check(before), check(fit.setting), float(lls[0]), float(lls[1])))
+        + _check_lines(run))
     # The messages' R stays theirs: the preset file keeps its own R then.
     written = fit.setting if r_written else fit.setting._replace(measurement_variance=None)
     tuned = (preset._replace(parameters=written.parameters(base)),

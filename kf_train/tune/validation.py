@@ -41,7 +41,7 @@ too few 2-s predictions (and the filter's warm-up) to judge anything."""
 Window = Optional[Tuple[float, float]]
 """The times [start, end) [s] whose predictions are scored; None: none of the segment's."""
 WORSE_TOLERANCE = 2e-3
-"""An RMSE larger by less than this share (0.2 %, below the report's 3 digits) is a tie."""
+"""RMSEs within this share (0.2 %, below the report's 3 digits) are a tie (the start kept)."""
 
 
 class Holdout(NamedTuple):
@@ -308,7 +308,8 @@ def worse_reason(comparison: Comparison) -> Optional[str]:
 
     Worse: a 2-s RMSE against the later fix, or against the truth where there is truth,
     larger by more than WORSE_TOLERANCE, or more lock-outs (resets and reacquisitions).
-    Ties are not worse.
+    A tie against the later fix (within WORSE_TOLERANCE) is refused too: without a gain
+    there, the start is kept (a change that only might help is not worth the risk).
     """
     b, a = comparison.before, comparison.after
     if not b.count:
@@ -316,6 +317,9 @@ def worse_reason(comparison: Comparison) -> Optional[str]:
     if a.rmse_m > b.rmse_m * (1.0 + WORSE_TOLERANCE):
         return (f'on {comparison.label} the tuned setting predicts worse (2-s RMSE '
                 f'{_m(a.rmse_m)} against {_m(b.rmse_m)})')
+    if a.rmse_m >= b.rmse_m * (1.0 - WORSE_TOLERANCE):
+        return (f'on {comparison.label} the tuned setting predicts no better (2-s RMSE '
+                f'{_m(a.rmse_m)} against {_m(b.rmse_m)}, within {100 * WORSE_TOLERANCE:g} %)')
     if (b.truth_rmse_m is not None and a.truth_rmse_m is not None
             and a.truth_rmse_m > b.truth_rmse_m * (1.0 + WORSE_TOLERANCE)):
         return (f'on {comparison.label} the tuned setting predicts the truth worse (2-s '
