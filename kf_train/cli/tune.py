@@ -33,12 +33,13 @@ them (``--topic``, ``--control-topic``), truth from ``--truth-topic`` (default
 ``ground_truth`` when there). A table does not carry the measurements' variance, so R
 is estimated unless ``--fix-r`` gives it. A bag does: when every message carries the
 same variance, that is R (the node uses the message's variance) and q alone is
-estimated, unless ``--estimate-r``; when the variances vary, one R is estimated.
+estimated, unless ``--estimate-r``; when the variances vary, one R is estimated (for
+the rail preset, the rows' own variances are used, as the node uses them).
 For the rail preset, the last 25 % of each segment is held out (``--holdout``): the
 fit never sees it, and the start and the tuned setting are both run there by the node's
 own estimator (:mod:`kf_train.tune.validation`); a tuned setting that predicts worse
-there (or on ``--validate INPUT``) is not written (the report says 'kept the start',
-exit code 0) unless ``--force``. The linear presets tune on all the data.
+or no better there (or on ``--validate INPUT``) is not written (the report says 'kept
+the start', exit code 0) unless ``--force``. The linear presets tune on all the data.
 Bad input is reported in one line (file, line or row, column; the bag and its topic)
 with exit code 1.
 """
@@ -163,9 +164,10 @@ def add_rail_arguments(parser) -> None:
                              '(read as INPUT is), whole after its warm-up')
     parser.add_argument('--force', action='store_true',
                         help='rail preset only: write the tuned setting even when it '
-                             'predicts worse than the start on the held-out part or on '
-                             '--validate (without it nothing is written, exit code 0, and '
-                             "the report says 'kept the start: ...')")
+                             'predicts worse or no better than the start on the '
+                             'held-out part or on --validate (without it nothing is '
+                             "written, exit code 0, and the report says 'kept the start: "
+                             "...')")
 
 
 def check_rail_args(parser, args) -> List[str]:
