@@ -32,6 +32,8 @@ Rows (``--rows``, default all that exist):
    next to the train's KF, and issue 11's targets on 16 unseen rail runs, every run
    a row: 2-s RMSE against hindsight-tuned filterpy CV/CA/IMM, 2σ coverage
    (bench_rail.py; ``--rail-full`` tunes the baselines on the full grids).
+11. ``kf-train tune`` of the rail default on a 30,000-fix simulated bag: the fit's time
+   and the whole command's (bench_tune.py).
 
 Benchmarks print figures; they assert nothing. Every child process runs in its own
 ROS domain on localhost and is killed at the end whatever happens. The table is also
@@ -42,8 +44,8 @@ This directory is not installed with kf_train (it imports filterpy, a test and
 benchmark oracle): ``make bench`` runs this file, ``kf-train bench`` too from a source
 checkout. Rows 1-3 are in bench_core.py, rows 4-5 in bench_live.py, row 6 in
 bench_filters.py, rows 7-8 in bench_scale.py, row 9 in bench_bag.py, row 10 in
-bench_rail.py, the child processes in bench_children.py and the helper nodes are the
-node_*.py files.
+bench_rail.py, row 11 in bench_tune.py, the child processes in bench_children.py and the
+helper nodes are the node_*.py files.
 """
 
 import argparse
@@ -61,10 +63,11 @@ from bench_filters import row_filters  # noqa: E402
 from bench_live import LIVE_QOS_DEPTH, LIVE_RATES_HZ, row_live, row_startup  # noqa: E402
 from bench_rail import rows_rail  # noqa: E402
 from bench_scale import rows_live_fleet, rows_scale  # noqa: E402
+from bench_tune import rows_tune  # noqa: E402
 
 __all__ = ['main', 'percentile', 'ROWS']
 
-ROWS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10)
+ROWS = (1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)
 
 
 def _parse(argv: List[str]) -> argparse.Namespace:
@@ -122,7 +125,8 @@ def main(argv: Optional[List[str]] = None) -> int:
                7: lambda: rows_scale(args.quick),
                8: lambda: rows_live_fleet(args.quick),
                9: lambda: rows_bag(args.quick),
-               10: lambda: rows_rail(args.quick, args.rail_full)}
+               10: lambda: rows_rail(args.quick, args.rail_full),
+               11: lambda: rows_tune(args.quick)}
     for row in args.rows:
         print(f'measuring row {row} ...', file=sys.stderr, flush=True)
         rows += measure[row]()

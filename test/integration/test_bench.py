@@ -27,7 +27,7 @@ _spec.loader.exec_module(bench)
 
 
 def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
-    """--quick measures rows 1 to 10 (one live rate) and prints and saves one table."""
+    """--quick measures rows 1 to 11 (one live rate) and prints and saves one table."""
     output = tmp_path / 'out' / 'bench.md'
     result = subprocess.run(
         [sys.executable, BENCH, '--quick', '--rates', '2000',
@@ -41,7 +41,7 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     table = [line for line in out.splitlines() if line.startswith('| ')]
     assert len([line for line in out.splitlines() if line.startswith('| Row |')]) == 1
     rows = {line.split('|')[1].strip() for line in table[1:]}
-    assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9', '10a', '10b'}
+    assert rows == {'1', '2', '3', '4', '5', '6', '7', '8', '9', '10a', '10b', '11'}
     assert not [line for line in table if 'failed:' in line], table
     assert 'NOT EXACT' not in out, [line for line in table if 'NOT EXACT' in line]
     # Every live trial got through and exited (the echo, the train KF on both
@@ -79,13 +79,16 @@ def test_quick_bench_prints_one_table_with_every_row(tmp_path, domain_id):
     runs = [line for line in rail if 'unseen run' in line]
     assert len(runs) == 2 and all('2σ coverage' in line and 'the best (' in line
                                   for line in runs), runs
+    # Row 11: the rail tune, the fit and the whole command.
+    tune = [line for line in table if line.startswith('| 11 |')]
+    assert len(tune) == 2 and all(' s (' in line for line in tune), tune
     # The file holds the header and the same table.
     saved = output.read_text()
     assert saved.splitlines()[0].startswith('kf_train benchmark, ')
     assert [line for line in saved.splitlines() if line.startswith('| ')] == table
 
 
-@pytest.mark.parametrize('argv', [['--rows', '11'], ['--rows', 'x'], ['--rates', '0'],
+@pytest.mark.parametrize('argv', [['--rows', '12'], ['--rows', 'x'], ['--rates', '0'],
                                   ['--bogus']])
 def test_bad_command_line_exits_2(argv, capsys):
     """An unknown row, a bad rate or option: exit 2 with argparse's message."""
