@@ -23,7 +23,7 @@ own carried state.
 
 The RTS smoother needs every later row of an object before it can smooth a row, so
 ``smooth=True`` spills the forward results to temporary files
-(:class:`kf_train.batch.spill.ForwardSpill`, about 150 bytes per row for two states)
+(:class:`kf_train.batch.spill.ForwardSpill`, about 160 bytes per row for two states)
 and runs the backward pass block by block from the end, each object anchored on its
 smoothed row of the next block. Memory stays bounded; disk grows with the rows.
 """
@@ -41,7 +41,8 @@ import numpy as np
 
 # The last output column of an input with gaps: 1.0 updated, 0.0 predicted only.
 UPDATED_COLUMN = 'updated'
-# A filter with regimes: the NIS of the row's position (as the bag replay's CSV names it).
+# The NIS yᵀ S⁻¹ y of the row's measurement (as the bag replay's CSV names it); a filter
+# with regimes: of the row's position.
 NIS_COLUMN = 'nis'
 # Rows filtered together: big enough for the vectorised paths to run at full speed,
 # small enough that a block's work arrays stay far below the memory budget.
@@ -114,6 +115,8 @@ class Estimates(NamedTuple):
     """1.0 where the row was updated, 0.0 where it had no measurement (a stream with gaps)."""
     regimes: Optional[np.ndarray] = None
     """A preset with regimes (rail): (N, modes + 1), the probabilities, then the NIS."""
+    nis: Optional[np.ndarray] = None
+    """Any other preset: the NIS of each row's measurement (N,), NaN where it fused none."""
 
 
 class OutputBlock(NamedTuple):
@@ -139,8 +142,8 @@ def output_header(preset, horizon: Optional[float], smooth: bool,
     """
     Return the output columns after the id: t, states, variances, predicted, smoothed.
 
-    A preset with regimes (rail) adds ``p_<regime>`` for each and ``nis``; with ``gaps``
-    (an input with rows without a measurement) a last column ``updated``.
+    Then ``nis`` (a preset with regimes, rail: after ``p_<regime>`` for each); with
+    ``gaps`` (an input with rows without a measurement) a last column ``updated``.
     """
     names = preset.state_names
     header = ['t']
@@ -149,8 +152,8 @@ def output_header(preset, horizon: Optional[float], smooth: bool,
         header += [prefix + name for name in names]
         header += ['var_' + prefix + name for name in names]
     if has_regimes(preset):
-        header += regime_columns(preset.mode_names) + [NIS_COLUMN]
-    return header + ([UPDATED_COLUMN] if gaps else [])
+        header += regime_columns(preset.mode_names)
+    return header + [NIS_COLUMN] + ([UPDATED_COLUMN] if gaps else [])
 
 
 def has_regimes(preset) -> bool:
@@ -172,6 +175,8 @@ def estimate_columns(est: Estimates, smoothed=None) -> List[np.ndarray]:
         columns += [P[:, i, i] if P.ndim == 3 else P[:, i] for i in range(n)]
     if est.regimes is not None:
         columns += list(est.regimes.T)
+    else:
+        columns.append(est.nis)
     if est.updated is not None:
         columns.append(est.updated)
     return columns
@@ -276,7 +281,7 @@ def _as_estimates(result) -> Estimates:
     """Return a SeriesResult's fields as Estimates."""
     return Estimates(result.t_s, result.x, result.P, result.x_prior, result.P_prior,
                      None if result.F is None else np.asarray(result.F), result.predicted_x,
-                     result.predicted_P)
+                     result.predicted_P, nis=result.nis)
 
 
 def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
@@ -286,12 +291,15 @@ def run_filter_rows(filt, dt: np.ndarray, z, u, horizon: Optional[float],
         missing = None      # it takes every row, its empty cells NaN (RailSeriesFilter)
     else:
         z, missing = without_gaps(z, missing)
-    regimes = np.empty((dt.shape[0], len(filt.mode_names) + 1)) \
-        if has_regimes(filt.preset) else None
+    regimes = nis = None
+    if has_regimes(filt.preset):
+        regimes = np.empty((dt.shape[0], len(filt.mode_names) + 1))
+    else:
+        nis = np.empty(dt.shape[0])
     out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon,
-                                                                 missing, regimes)
+                                                                 missing, regimes, nis)
     return Estimates(t, out_x, out_P, prior_x, prior_P, filt.preset.dynamics.F_batch(dt),
-                     pred_x, pred_P, regimes=regimes)
+                     pred_x, pred_P, regimes=regimes, nis=nis)
 
 
 class BlockFilter:
@@ -363,7 +371,7 @@ class BlockFilter:
         groups = group_rows(local.reshape(-1))
         out = (np.empty((N, n)), np.empty((N, n, n)), np.empty((N, n)), np.empty((N, n, n)),
                np.empty((N, n)) if self.horizon else None,
-               np.empty((N, n, n)) if self.horizon else None)
+               np.empty((N, n, n)) if self.horizon else None, np.empty(N))
         alone = np.arange(objects.shape[0])
         regimes = np.empty((N, len(self.preset.mode_names) + 1)) \
             if has_regimes(self.preset) else None
@@ -389,13 +397,13 @@ class BlockFilter:
                                         None if missing is None else missing[rows])
             except SeriesError as error:
                 raise SeriesError(int(rows[error.row]), error.reason) from None
-            for array, value in zip(out, est[1:5] + est[6:8]):
-                if array is not None:
+            for array, value in zip(out, est[1:5] + est[6:8] + (est.nis,)):
+                if array is not None and value is not None:
                     array[rows] = value
             if regimes is not None:
                 regimes[rows] = est.regimes
-        return Estimates(t, *out[:4], self.preset.dynamics.F_batch(dt), *out[4:],
-                         regimes=regimes)
+        return Estimates(t, *out[:4], self.preset.dynamics.F_batch(dt), *out[4:6],
+                         regimes=regimes, nis=None if regimes is not None else out[6])
 
     def _object_rows(self, obj: int, t, dt, z, u, missing=None) -> Estimates:
         """Filter one object's rows of a block alone."""

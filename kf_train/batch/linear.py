@@ -19,8 +19,9 @@ import math
 from kf_train.batch.affine import affine_recursion
 from kf_train.batch.series import series_inputs, SeriesResult
 from kf_train.batch.soa import (
-    entry_add, is_const, soa_const, soa_gain, soa_inv, soa_mm, soa_msub, soa_mv,
-    soa_prior_covariance, soa_select, soa_stack, soa_sym, soa_to_stack, soa_vector_to_stack)
+    entry_add, entry_sub, is_const, soa_const, soa_gain_terms, soa_inv, soa_mm, soa_msub,
+    soa_mv, soa_nis, soa_prior_covariance, soa_select, soa_stack, soa_sym, soa_to_stack,
+    soa_vector_to_stack)
 import numpy as np
 
 # A covariance step smaller than this many units in the last place counts as converged.
@@ -168,8 +169,8 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
 
     Arguments as :func:`run_series`. Reusable on plain arrays (one object's series).
     ``missing`` (N,) flags rows without a measurement (their z is ignored): they are
-    predicted, not updated (gain 0). ``priors`` False leaves x_prior, P_prior and F
-    None (only the smoother needs them).
+    predicted, not updated (gain 0; NIS NaN). ``priors`` False leaves x_prior, P_prior
+    and F None (only the smoother needs them).
     """
     if not preset.linear:
         raise ValueError(f'preset {preset.name!r} is not linear; use run_series')
@@ -187,7 +188,8 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
     if N == 0:
         empty, empty3 = np.empty((0, n)), np.empty((0, n, n))
         return SeriesResult(t_s, empty, empty3, empty, empty3, empty3, horizon_s,
-                            empty if horizon_s else None, empty3 if horizon_s else None)
+                            empty if horizon_s else None, empty3 if horizon_s else None,
+                            np.empty(0))
     if dt[0] > 0.0 and (dt == dt[0]).all():   # one time step (no sort): np.unique's result
         dts, inv = dt[:1].copy(), np.zeros(N, dtype=np.intp)
     else:
@@ -204,7 +206,7 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
     # The prior of row k from the posterior of row k − 1 (P0 before row 0).
     P_prev = [[_shift(e, P0[i, j], N) for j, e in enumerate(row)] for i, row in enumerate(P)]
     P_prior = soa_prior_covariance(F, P_prev, Q)       # F P Fᵀ + Q
-    K = soa_gain(P_prior, Hs, Rs, N)                   # K = P⁻ Hᵀ S⁻¹
+    K, S, S_inv = soa_gain_terms(P_prior, Hs, Rs, N)   # K = P⁻ Hᵀ S⁻¹
     if keep is not None:                               # no measurement: K = 0
         K = [[keep * e for e in row] for row in K]
     I_KH = soa_msub(soa_const(np.eye(n)), soa_mm(K, Hs))
@@ -225,16 +227,28 @@ def run_linear_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=No
         pred_x, pred_P = predict_ahead(dyn, horizon_s,
                                        [np.ascontiguousarray(x[:, i]) for i in range(n)], P,
                                        us, N)
-    if not priors:
-        return SeriesResult(t_s, x, soa_to_stack(P, N), None, None, None, horizon_s, pred_x,
-                            pred_P)
     x_prev = [_shift(np.ascontiguousarray(x[:, i]), x0[i], N) for i in range(n)]
     x_prior = soa_mv(F, x_prev)                        # x⁻ = F x + B u
     if Bu is not None:
         x_prior = [entry_add(e, f) for e, f in zip(x_prior, Bu)]
+    nis = _nis(zs, Hs, x_prior, S, S_inv, N, missing)
+    if not priors:
+        return SeriesResult(t_s, x, soa_to_stack(P, N), None, None, None, horizon_s, pred_x,
+                            pred_P, nis)
     return SeriesResult(t_s, x, soa_to_stack(P, N), soa_vector_to_stack(x_prior, N),
                         soa_to_stack(P_prior, N), soa_to_stack(F, N), horizon_s, pred_x,
-                        pred_P)
+                        pred_P, nis)
+
+
+def _nis(zs: list, Hs: list, x_prior: list, S: list, S_inv: list, N: int,
+         missing) -> np.ndarray:
+    """Return each row's NIS yᵀ S⁻¹ y, y = z − H x⁻ (NaN for a row without a measurement)."""
+    hx = soa_mv(Hs, x_prior)
+    y = [entry_sub(z_i, e) for z_i, e in zip(zs, hx)]  # y = z − H x⁻
+    nis = np.broadcast_to(soa_nis(y, S, S_inv), (N,))
+    if missing is not None:
+        return np.where(missing, np.nan, nis)
+    return np.ascontiguousarray(nis)
 
 
 def predict_ahead(dynamics, horizon_s: float, xs: list, P: list, us, N: int):

@@ -50,6 +50,8 @@ class SeriesResult(NamedTuple):
     """Means predicted to t_s[k] + horizon_s (N, n), holding row k's control."""
     predicted_P: Optional[np.ndarray]
     """Covariances predicted to t_s[k] + horizon_s (N, n, n)."""
+    nis: Optional[np.ndarray] = None
+    """The NIS yᵀ S⁻¹ y of row k's measurement (N,), NaN where the row fused none."""
 
 
 class SeriesError(ValueError):
@@ -149,13 +151,15 @@ def run_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=
     dt, z, u, horizon_s, x, P = series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
     N, model = dt.shape[0], preset.model
     out_x, out_P, prior_x, prior_P, pred_x, pred_P = series_outputs(N, preset.dim_x, horizon_s)
+    nis = np.full(N, np.nan)
     for k in range(N):
         u_k = None if u is None else u[k]
         try:
             x, P = model.predict(x, P, dt[k], u_k)   # x⁻ = F x + B u, P⁻ = F P Fᵀ + Q
             prior_x[k], prior_P[k] = x, P
             if missing is None or not missing[k]:
-                x, P, _ = model.update(x, P, z[k])    # x = x⁻ + K y, Joseph P
+                x, P, result = model.update(x, P, z[k])    # x = x⁻ + K y, Joseph P
+                nis[k] = result.nis
             out_x[k], out_P[k] = x, P
             if horizon_s:
                 pred_x[k], pred_P[k] = model.predict(x, P, horizon_s, u_k)
@@ -163,7 +167,7 @@ def run_series(preset, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=
             raise SeriesError(k, str(error)) from None
     F = preset.dynamics.F_batch(dt)
     return SeriesResult(np.asarray(t_s, dtype=float), out_x, out_P, prior_x, prior_P, F,
-                        horizon_s, pred_x, pred_P)
+                        horizon_s, pred_x, pred_P, nis)
 
 
 def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None, x0=None,
@@ -178,12 +182,15 @@ def run_filter_series(filt, t_s, z, u=None, *, t0_s: float = 0.0, horizon_s=None
     preset = filt.preset
     dt, z, u, horizon_s, x0, P0 = series_inputs(preset, t_s, z, u, t0_s, horizon_s, x0, P0)
     filt.reset(x0, P0)
-    out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon_s)
+    nis = np.empty(dt.shape[0])
+    out_x, out_P, prior_x, prior_P, pred_x, pred_P = filter_rows(filt, dt, z, u, horizon_s,
+                                                                 nis=nis)
     return SeriesResult(np.asarray(t_s, dtype=float), out_x, out_P, prior_x, prior_P,
-                        preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P)
+                        preset.dynamics.F_batch(dt), horizon_s, pred_x, pred_P, nis)
 
 
-def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None, regimes=None):
+def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None, regimes=None,
+                nis=None):
     """
     Predict and update ``filt`` row by row from its current state (no reset).
 
@@ -191,7 +198,8 @@ def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None, regimes=Non
     horizon; a step's ValueError becomes a SeriesError naming the row. Rows flagged in
     ``missing`` are predicted, not updated. ``regimes`` (N, 1 + modes), for a filter of
     regimes (:class:`~kf_train.batch.RailSeriesFilter`), receives each row's regime
-    probabilities and the NIS of its position (NaN where the row fused none).
+    probabilities and the NIS of its position (NaN where the row fused none); ``nis``
+    (N,), for any other filter, the NIS of each row's update (NaN where it had none).
     """
     N = dt.shape[0]
     out_x, out_P, prior_x, prior_P, pred_x, pred_P = series_outputs(
@@ -203,7 +211,9 @@ def filter_rows(filt, dt: np.ndarray, z, u, horizon_s, missing=None, regimes=Non
             prior_x[k], prior_P[k] = filt.mean, filt.covariance
             updated = missing is None or not missing[k]
             if updated:
-                filt.update(z[k])
+                result = filt.update(z[k])
+            if nis is not None:   # (a filter of regimes returns None when it starts)
+                nis[k] = result.nis if updated and result is not None else np.nan
             out_x[k], out_P[k] = filt.mean, filt.covariance
             if horizon_s:
                 pred_x[k], pred_P[k] = filt.predict_ahead(horizon_s, u_k)

@@ -158,6 +158,27 @@ def soa_prior_covariance(F: list, P: list, Q: list) -> list:
 
 def soa_gain(P_prior: list, H: list, R: list, N: int) -> list:
     """Return the Kalman gain K = P⁻ Hᵀ S⁻¹ with S = H P⁻ Hᵀ + R (exactly symmetric)."""
+    return soa_gain_terms(P_prior, H, R, N)[0]
+
+
+def soa_gain_terms(P_prior: list, H: list, R: list, N: int) -> tuple:
+    """Return (K, S, S⁻¹): the Kalman gain and the innovation covariance it inverts."""
     PHt = soa_mm(P_prior, soa_t(H))
     S = soa_sym(soa_madd(soa_mm(H, PHt), R))           # S = H P⁻ Hᵀ + R
-    return soa_mm(PHt, soa_inv(S, N))                  # K = P⁻ Hᵀ S⁻¹
+    S_inv = soa_inv(S, N)
+    return soa_mm(PHt, S_inv), S, S_inv                # K = P⁻ Hᵀ S⁻¹
+
+
+def soa_nis(y: list, S: list, S_inv: list):
+    """
+    Return the NIS yᵀ S⁻¹ y of innovations ``y`` (a nested-list vector).
+
+    A scalar measurement takes y² / s, the formula of :func:`kf_train.filters.kalman.update`
+    (the streaming estimator's), so both round alike.
+    """
+    if len(y) == 1:
+        return entry_mul(y[0], y[0]) / S[0][0]          # NIS = y² / s
+    total = 0.0
+    for i, row in enumerate(S_inv):
+        total = entry_add(total, entry_mul(y[i], soa_mv([row], y)[0]))  # yᵢ (S⁻¹ y)ᵢ
+    return total

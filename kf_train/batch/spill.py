@@ -3,14 +3,14 @@ The RTS smoother over a stream: forward results spilled to disk, smoothed backwa
 
 A smoothed row needs every later row of its object, so a stream cannot be smoothed
 as it is read. :class:`ForwardSpill` appends each block's forward results (one
-fixed-size record per row: object, t, x, P, the prior x⁻ and P⁻, F and the
-prediction) to a temporary file; :func:`smooth_backwards` then reads the blocks from
+fixed-size record per row: object, t, x, P, the prior x⁻ and P⁻, F, the
+prediction and the NIS) to a temporary file; :func:`smooth_backwards` then reads the blocks from
 the last to the first and smooths every object's rows of a block with
 :func:`kf_train.batch.smoother.rts_smooth`, anchored on the object's first row of the
 next block, already smoothed (the backward recursion needs only that row's smoothed
 x, P and its prior and F). A stream of one block is smoothed exactly as the
 in-memory replay smooths it. Memory holds one block and one anchor per object; disk
-holds 8·(2 + 3n + 3n²) bytes per row (about 150 for two states) plus 16n for the
+holds 8·(3 + 3n + 3n²) bytes per row (about 160 for two states) plus 16n for the
 smoothed means and variances.
 """
 
@@ -28,6 +28,7 @@ def _record(n: int, horizon: bool, gaps: bool = False) -> np.dtype:
               ('x_prior', '<f8', (n,)), ('P_prior', '<f8', (n, n)), ('F', '<f8', (n, n))]
     if horizon:
         fields += [('predicted_x', '<f8', (n,)), ('predicted_P', '<f8', (n, n))]
+    fields.append(('nis', '<f8'))
     if gaps:
         fields.append(('updated', '<f8'))
     return np.dtype(fields)
@@ -56,6 +57,7 @@ class ForwardSpill:
             rec[name] = getattr(est, 't_s' if name == 't' else name)
         if self.horizon:
             rec['predicted_x'], rec['predicted_P'] = est.predicted_x, est.predicted_P
+        rec['nis'] = est.nis
         if self.gaps:
             rec['updated'] = est.updated
         rec.tofile(self.stream)
@@ -108,7 +110,7 @@ class ForwardSpill:
             est = Estimates(rec['t'], rec['x'], rec['P'], rec['x_prior'], rec['P_prior'],
                             rec['F'], rec['predicted_x'] if self.horizon else None,
                             rec['predicted_P'] if self.horizon else None,
-                            rec['updated'] if self.gaps else None)
+                            rec['updated'] if self.gaps else None, nis=rec['nis'])
             yield first, rec['code'], est, (sm['x'], sm['var'])
 
 

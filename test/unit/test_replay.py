@@ -156,7 +156,7 @@ def _read_output(path):
 
 @pytest.mark.parametrize('name', PRESET_NAMES)
 def test_replay_writes_every_state_by_name(tmp_path, name):
-    """The output has t, the states, var_<state> (and predictions for train), exactly."""
+    """The output has t, the states, var_<state> (predictions for train), nis, exactly."""
     preset = load_preset(name)
     s = _scenario_csv(tmp_path / 'in.csv', name)
     assert main(['--preset', name, str(tmp_path / 'in.csv'), '--output',
@@ -166,12 +166,13 @@ def test_replay_writes_every_state_by_name(tmp_path, name):
     expected = ['t'] + states + ['var_' + s for s in states]
     if name == 'train':
         expected += ['predicted_' + s for s in states] + ['var_predicted_' + s for s in states]
-    assert header == expected
+    assert header == expected + ['nis']
     reference = run_series(preset, s.t_s, s.z, s.u)
     np.testing.assert_array_equal(out['t'], s.t_s)
     for i, state in enumerate(states):
         _close(out[state], reference.x[:, i])
         _close(out['var_' + state], reference.P[:, i, i])
+    _close(out['nis'], reference.nis)
     if preset.linear:  # the text round trip is exact: the vectorised doubles come back
         fast = run_linear_series(preset, s.t_s, s.z, s.u)
         np.testing.assert_array_equal(out[states[0]], fast.x[:, 0])
@@ -188,7 +189,7 @@ def test_horizon_smooth_and_t0_options(tmp_path):
     assert header[5:] == ['predicted_position', 'predicted_velocity',
                           'var_predicted_position', 'var_predicted_velocity',
                           'smoothed_position', 'smoothed_velocity',
-                          'var_smoothed_position', 'var_smoothed_velocity']
+                          'var_smoothed_position', 'var_smoothed_velocity', 'nis']
     result = run_series(preset, s.t_s, s.z, horizon_s=1.5)
     _close(out['predicted_position'], result.predicted_x[:, 0])
     smoothed = smooth_series(result)
@@ -310,7 +311,7 @@ def test_console_script_end_to_end(tmp_path):
     done = subprocess.run([script, 'replay', '--preset', 'car', str(source), '--output',
                            str(target)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
-    assert target.read_text().startswith('t,position,velocity,var_position,var_velocity\n')
+    assert target.read_text().startswith('t,position,velocity,var_position,var_velocity,nis\n')
     bad = subprocess.run([script, 'replay', '--preset', 'car', str(source), '--output',
                           str(tmp_path / 'o.csv'), '--config', 'x'], capture_output=True,
                          text=True, timeout=60)

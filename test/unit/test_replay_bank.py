@@ -17,7 +17,7 @@ from kf_train.presets import load_preset, PRESET_NAMES
 import numpy as np
 import pytest
 
-FIELDS = ('x', 'P', 'x_prior', 'P_prior', 'F', 'predicted_x', 'predicted_P')
+FIELDS = ('x', 'P', 'x_prior', 'P_prior', 'F', 'predicted_x', 'predicted_P', 'nis')
 
 
 def _close(a, b, tol=1e-9):
