@@ -5,7 +5,7 @@ Row 7 (offline, every figure from a child process, start-up included unless said
 
 * peak RSS of ``kf-train replay`` streaming 10⁶ and 10⁷ rows (polars and built-in
   codecs) against the in-memory engine, and its bytes per row;
-* CSV to CSV and Parquet to Parquet throughput on the train preset (9 output columns);
+* CSV to CSV and Parquet to Parquet throughput on the train preset (10 output columns);
 * 200 000 rows: ``kf-train replay`` against ``benchmarks/filterpy_replay.py``;
 * simdkalman beside the bank (kf_train.batch.run_bank, objects in lock-step) on the
   same 2-state problem, 10⁵ and 10⁶ filters, ns per filter-step;
@@ -154,7 +154,7 @@ def _memory_rows(directory: str, quick: bool) -> List[Row]:
 
 def _throughput_rows(directory: str, quick: bool) -> List[Row]:
     """
-    CSV to CSV and Parquet to Parquet, train preset, 9 output columns, at two sizes.
+    CSV to CSV and Parquet to Parquet, train preset, 10 output columns, at two sizes.
 
     The target is wall-clock rows/s with the process start-up (≈0.5 s of imports)
     included; the larger size shows the rate once start-up is amortised. The ratio is
@@ -180,7 +180,7 @@ def _throughput_rows(directory: str, quick: bool) -> List[Row]:
                 f'≥{goal:,.0f} rows/s: {rate / goal:.2f}× '
                 f'{"met" if rate >= goal else "MISSED"} (CPU-time rate '
                 f'{cpu_rate / goal:.2f}×)')
-            rows.append(('7', 'replay throughput, train preset, 9 output columns',
+            rows.append(('7', 'replay throughput, train preset, 10 output columns',
                          f'{label}, {size:,} rows, process start-up included',
                          f'{_rate(size, run["wall"])} wall; {_rate(size, run["cpu"])} of CPU '
                          f'time; {_load()}', f'{run["cpu"] / run["wall"]:.2f} CPUs busy',

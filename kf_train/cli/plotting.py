@@ -30,7 +30,7 @@ def _parser() -> argparse.ArgumentParser:
                'figures seed000_position.png, seed000_velocity.png and '
                'seed000_extrapolation.png. With --replay OUT.csv: draws a kf-train replay '
                'output, and the measurements of --input IN.csv; an output with a '
-               'prediction and nis (rail, a bag replay) as four panels: the prediction '
+               'prediction and nis (train, rail, a bag replay) as four panels: the prediction '
                'error against the later fix with its ±2σ band, the regime probabilities, '
                'the NIS with its bounds, and a zoom on the longest standstill; time from '
                'the start in s.')

@@ -289,7 +289,7 @@ def replay_figure_paths(output_dir: str, replay_csv: str, input_csv: Optional[st
     """
     Draw a ``kf-train replay`` output (and its input's measurements); return paths.
 
-    An output with ``predicted_position`` and ``nis`` (rail, a bag's) gets the figure of
+    An output with ``predicted_position`` and ``nis`` (train, rail, a bag's) gets the figure of
     :mod:`kf_train.plots.replay_figure` (``input_csv`` may then be the replayed bag);
     ``horizon_s`` None is the estimator's default preset's.
     """

@@ -2,8 +2,9 @@
 The figure of a replay with a prediction: where the prediction failed, and why.
 
 ``kf-train plot --replay OUT.csv`` draws this for an output with ``predicted_position``
-and ``nis`` (the rail preset's table replay, any bag replay's CSV or output bag) instead
-of one panel per state. Four panels, time from the first row in s (never epoch seconds):
+and ``nis`` (the table replay of a preset with a horizon, train or rail; any bag
+replay's CSV or output bag) instead of one panel per state. Four panels, time from the
+first row in s (never epoch seconds):
 
 1. the ``horizon_s`` prediction's error against the later fix (the measured position
    at t + horizon_s, from ``--input``: the replay's input table or bag; without it,

@@ -91,6 +91,9 @@ def output_columns(preset: Preset, result: SeriesResult,
         add('predicted_', result.predicted_x, result.predicted_P)
     if smoothed is not None:
         add('smoothed_', smoothed.x, smoothed.P)
+    if result.nis is not None:          # last, as kf_train.batch.output_header has it
+        header.append('nis')
+        columns.append(result.nis)
     return header, columns
 
 
