@@ -16,6 +16,7 @@ from kf_train.estimator import EstimatorSettings, StreamEstimator
 from kf_train.filters import make_filter
 from kf_train.io import read_table
 from kf_train.presets import load_preset, PRESET_NAMES
+from kf_train.replay.bag import csv_header
 import numpy as np
 import pytest
 
@@ -190,3 +191,9 @@ def test_parquet_carries_the_column(tmp_path):
     expected = filter_table(preset, t, z, t0_s=T0_NS / 1e9)
     np.testing.assert_array_equal(got['nis'].to_numpy(),
                                   _nis_column(preset, expected, horizon=preset.horizon_s))
+
+
+def test_the_table_and_the_bag_csv_name_the_same_columns():
+    """A linear preset's table replay and its bag replay's CSV: the same header."""
+    preset = load_preset('train')
+    assert output_header(preset, preset.horizon_s, False) == csv_header(preset.state_names)
