@@ -37,15 +37,15 @@ from kf_train.io.track_network import is_network_file, TrackNetwork
 from kf_train.io.track_network_live import NetworkFixes
 
 __all__ = [
-    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS',
-    'check_output_path', 'check_time_range', 'check_times', 'columnar', 'CROSS_TRACK_MAX_M',
-    'CROSS_TRACK_SIGMAS', 'csvio', 'decode_text', 'Fields', 'Fix', 'fix_from_msg',
-    'format_csv', 'format_labels', 'format_rows', 'format_values', 'HEADER_LINE',
-    'header_names', 'ID_COLUMN', 'in_background', 'InputError', 'is_bag', 'is_network_file',
-    'load_track', 'NetworkFixes', 'open_output', 'Output', 'parse_labels', 'parse_numbers', 'parse_rows',
-    'read_table', 'required_columns', 'resolve_columns', 'split_fields', 'Table',
-    'time_order_error', 'TRACK_DIRECTIONS', 'TrackError', 'TrackFix', 'TrackFixes',
-    'TrackGeometry', 'TrackNetwork', 'UTF8_BOM', 'write_atomic',
+    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'check_output_path',
+    'check_time_range', 'check_times', 'columnar', 'CROSS_TRACK_MAX_M', 'CROSS_TRACK_SIGMAS',
+    'csvio', 'decode_text', 'Fields', 'Fix', 'fix_from_msg', 'format_csv', 'format_labels',
+    'format_rows', 'format_values', 'HEADER_LINE', 'header_names', 'ID_COLUMN', 'in_background',
+    'InputError', 'is_bag', 'is_network_file', 'load_track', 'NetworkFixes', 'open_output',
+    'Output', 'parse_labels', 'parse_numbers', 'parse_rows', 'read_table', 'required_columns',
+    'resolve_columns', 'split_fields', 'Table', 'time_order_error', 'TRACK_DIRECTIONS',
+    'TrackError', 'TrackFix', 'TrackFixes', 'TrackGeometry', 'TrackNetwork', 'UTF8_BOM',
+    'write_atomic',
 ]
 
 # bagio_mcap, bagio_ros1 and bagio_types, which the bag modules use, import rosbags too.

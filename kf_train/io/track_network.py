@@ -26,7 +26,7 @@ import json
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
-from kf_train.io.track import polyline_arc_lengths_m, project_onto_polyline
+from kf_train.io.track import polyline_arc_lengths_m
 from kf_train.io.track_geometry import TrackError, TrackGeometry
 import numpy as np
 
@@ -35,6 +35,8 @@ MATCH_SIGMA_M = 10.0
 MATCH_CAP_M = 40.0
 SWITCH_COST = 5.0
 MAX_HOPS = 3
+_PAIRS_PER_CHUNK = 1 << 19
+"""Point-segment pairs per vectorised chunk of distances_m: bounds its arrays to ~20 MB."""
 
 
 def is_network_file(path) -> bool:
@@ -80,6 +82,14 @@ class TrackNetwork:
         self.frame = frame
         self.lines_m = [frame.to_local(line[:, 1], line[:, 0]) for line in self.lonlat]
         self.lengths_m = np.array([polyline_arc_lengths_m(line)[-1] for line in self.lines_m])
+        # Every element's segments in one table (repeated vertices dropped), for distances_m.
+        distinct = [line[np.concatenate(([True], np.any(np.diff(line, axis=0) != 0.0, axis=1)))]
+                    for line in self.lines_m]
+        self._first_segment = np.cumsum([0] + [len(v) - 1 for v in distinct[:-1]])
+        self._segment_start = np.concatenate([v[:-1] for v in distinct])
+        step = np.concatenate([np.diff(v, axis=0) for v in distinct])
+        self._segment_length = np.hypot(step[:, 0], step[:, 1])
+        self._segment_unit = step / self._segment_length[:, None]
         count = len(self.ids)
         # joins[(element, end)] = [(element, end), ...]: ends 0 (first vertex) or 1.
         self.joins: Dict[Tuple[int, int], List[Tuple[int, int]]] = {
@@ -142,8 +152,17 @@ class TrackNetwork:
 
     def distances_m(self, points_m: np.ndarray) -> np.ndarray:
         """Return the (N, E) distance of points (N, 2) in the network's frame to each element."""
-        return np.column_stack([np.abs(project_onto_polyline(points_m, line)[1])
-                                for line in self.lines_m])
+        points = np.asarray(points_m, dtype=float).reshape(-1, 2)
+        start, unit = self._segment_start, self._segment_unit
+        out = np.empty((points.shape[0], len(self.ids)))
+        chunk = max(1, _PAIRS_PER_CHUNK // start.shape[0])
+        for first in range(0, points.shape[0], chunk):
+            part = points[first:first + chunk, None, :]
+            along = np.clip(((part - start) * unit).sum(axis=2), 0.0, self._segment_length)
+            gap = part - (start + along[..., None] * unit)         # to the foot on each
+            out[first:first + chunk] = np.minimum.reduceat(
+                np.hypot(gap[..., 0], gap[..., 1]), self._first_segment, axis=1)
+        return out
 
     def transition(self) -> np.ndarray:
         """Return the (S, S) log-probability of passing from state to state between two fixes."""

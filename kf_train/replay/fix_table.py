@@ -94,4 +94,3 @@ def replay_fix_table(table_path: str, output_path: str, config):
     if config.options.measurement_type != 'navsatfix':
         raise ValueError('a fix table needs --track FILE (measurement_type navsatfix)')
     return bag.replay_source(FixTable(table_path), output_path, config)
-

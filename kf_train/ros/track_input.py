@@ -7,9 +7,9 @@ or a CSV with a ``lat,lon`` header: :mod:`kf_train.io.track_geometry`) or a netw
 (LineStrings joined at switches: :mod:`kf_train.io.track_network`). Each fix goes
 through :class:`kf_train.io.track_fixes.TrackFixes` (cross-track gate, direction of
 travel), on a network through :class:`kf_train.io.track_network_live.NetworkFixes`
-(the same, on the path chosen live), and what it releases is fused as a position measurement: the node
-(:mod:`kf_train.ros.estimator_node`) and ``kf-train replay BAG`` both do it through
-:class:`TrackInput`, so they fuse the same numbers.
+(the same, on the path chosen live), and what it releases is fused as a position
+measurement: the node (:mod:`kf_train.ros.estimator_node`) and ``kf-train replay BAG``
+both do it through :class:`TrackInput`, so they fuse the same numbers.
 
 * ``status.status`` < 0 (STATUS_NO_FIX): ignored, counted (``fixes.no_fix``).
 * ``position_covariance_type`` COVARIANCE_TYPE_UNKNOWN (0): the fix's variance is
