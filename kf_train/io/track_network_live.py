@@ -20,8 +20,8 @@ step keeps, for each state, the score of the best chain of states ending in it.
   It changes to a better chain only when that one leads by more than one fix can give
   (``emission(0) - emission(MATCH_CAP_M)``), so a lone gross fix near another track
   cannot move it; it still feeds the model (capped), as offline. A fix beyond the
-  published element's exit end is measured on the nearest element entered from it
-  (the model passes on only once the evidence has paid SWITCH_COST).
+  published element's exit end is measured on the nearest element reachable from it
+  within MAX_HOPS (the model passes on only once the evidence has paid SWITCH_COST).
 * **The start.** x is 0 at the first fix's projection, on every state's element.
   Both directions of an element fit a fix alike, so the fixes are held (and counted
   as pending) until they have run ``direction_min_m`` along the best state's element
@@ -68,7 +68,9 @@ class NetworkFixes(TrackFixes):
                          'auto', direction_min_m)
         self.network = network
         self._transition = network.transition()
-        self._offsets_m = network.entry_offsets_m(network.hops())
+        hops = network.hops()
+        self._offsets_m = network.entry_offsets_m(hops)
+        self._ahead = [np.flatnonzero(np.isfinite(row) & (row > 0)) for row in hops]
         keep = [np.concatenate(([True], np.any(np.diff(line, axis=0) != 0.0, axis=1)))
                 for line in network.lines_m]
         self._vertices_m = [line[k] for line, k in zip(network.lines_m, keep)]
@@ -126,14 +128,13 @@ class NetworkFixes(TrackFixes):
                  state: int, x0_m: float) -> Optional[TrackFix]:
         """Return the fix on a state's chain (x0_m: where it entered the element), gated."""
         along_m, cross_m, tangent = self._on_state(state, points_m)
-        length_m = self._arc_m[state // 2][-1]
-        ahead = self.network.successors(state)
-        if along_m[0] >= length_m - _END_M and ahead:
+        if along_m[0] >= self._arc_m[state // 2][-1] - _END_M and self._ahead[state].size:
             # Past the element's exit end (the model has not passed on yet: entering
-            # costs SWITCH_COST first): on the nearest element entered from it.
-            along_m, cross_m, tangent = min((self._on_state(s, points_m) for s in ahead),
-                                            key=lambda on: abs(on[1][0]))
-            x0_m += length_m
+            # costs SWITCH_COST first): on the nearest element it reaches (MAX_HOPS).
+            on = [self._on_state(s, points_m) for s in self._ahead[state]]
+            nearest = int(np.argmin([abs(cross[0]) for _, cross, _ in on]))
+            along_m, cross_m, tangent = on[nearest]
+            x0_m += self._offsets_m[state, self._ahead[state][nearest]]
         return self._gated(tag, x0_m + float(along_m[0]), float(cross_m[0]), tangent[0],
                            covariance_en_m2)
 
