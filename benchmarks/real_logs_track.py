@@ -20,11 +20,15 @@ gate, the direction of travel decided by the node). Per log it reports
 * with ``--reverse``, the same with the track file drawn against the travel.
 
     PYTHONPATH=. python benchmarks/real_logs_track.py [--logs 29083,...] [--cache DIR]
-        [-p NAME:=VALUE ...] [--reverse] [--network]
+        [-p NAME:=VALUE ...] [--reverse] [--network [--live]]
 
 ``--network`` instead chooses each log's path on tp-lib's ``network_airport.geojson``
 from its fixes (:mod:`kf_train.io.track_network`, offline map matching) and compares it
-with tp-lib's path calculation, element by element.
+with tp-lib's path calculation, element by element. ``--network --live`` replays each
+log twice: on that path (chosen offline, from every fix, as one track) and on the
+network itself (the path chosen live, fix by fix: :mod:`kf_train.io.track_network_live`),
+each scored against the later fix it released (its own x), with the elements run, the
+fixes the gate rejected and the lock-outs (resets and re-acquisitions).
 
 The data are real_logs.py's (its cache, ``--data`` or ``$KF_TRAIN_TPLIB_DATA``; tp-lib,
 Apache-2.0, is not in this repository). Needs pyproj and rosbags. Figures only.
@@ -40,6 +44,8 @@ from typing import Dict, List
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from kf_train.evaluate import later_fix  # noqa: E402
+from kf_train.sim import RAIL_WARMUP_S  # noqa: E402
 from kf_train.sim.rail_eval import format_table  # noqa: E402
 import numpy as np  # noqa: E402
 import real_logs  # noqa: E402
@@ -104,25 +110,43 @@ def replay_track(bag_path: Path, track: Path, overrides: List[str], gross: np.nd
         now = [0.0]
         session = EstimatorSession(config, lambda: now[0])
         estimator, fixes = session.estimator, session.track.fixes
+        released, elements = {}, []
+        measurements = session.track.measurements
+
+        def capture(fix):
+            """Keep each released fix's x by its stamp (the node's own, as fused)."""
+            out = measurements(fix)
+            released.update((m.stamp_ns, m.position_m) for m in out)
+            return out
+
+        session.track.measurements = capture
         for k, message in enumerate(bag.messages()):
             now[0] = message.record_ns / NS
             before, was_initialized = fixes.counts.off_track, estimator.initialized
             session.on_fix(message, message.record_ns)
             off_track[k] = fixes.counts.off_track > before
+            element = getattr(fixes, 'element', None)      # a network: the element now
+            if element is not None and (not elements or elements[-1] != element[0]):
+                elements.append(element[0])
             if estimator.initialized and not was_initialized:
                 starts.append(k)
             if estimator.initialized:
                 x, P = estimator.predict_to(message.stamp_ns + horizon_ns)
                 mean[k], variance[k] = x[0], P[0, 0]
         counts = fixes.counts
-        # Every fix's own along-track x on the chosen orientation: the score's target.
-        s_m, _, _ = fixes.geometry.project(np.array([m.lat_deg for m in _all(bag_path)]),
-                                           np.array([m.lon_deg for m in _all(bag_path)]))
-        x_track = fixes.geometry.length_m - s_m if counts.direction == 'reverse' else s_m
+        stamps = [m.stamp_ns for m in _all(bag_path)]
+        if not elements:
+            # Every fix's own along-track x on the chosen orientation: the score's target.
+            s_m, _, _ = fixes.geometry.project(
+                np.array([m.lat_deg for m in _all(bag_path)]),
+                np.array([m.lon_deg for m in _all(bag_path)]))
+            x_track = fixes.geometry.length_m - s_m if counts.direction == 'reverse' else s_m
         stats = estimator.stats()
     return {'mean': mean, 'variance': variance, 'x_m': x_track, 'off_track': off_track,
             'starts': starts, 'resets': {k: n for k, n in stats.resets.items() if n},
             'rejected': session.rejected, 'direction': counts.direction,
+            'released_x_m': np.array([released.get(stamp, np.nan) for stamp in stamps]),
+            'elements': elements, 'reacquisitions': stats.reacquisitions,
             'r_m2': config.settings.measurement_variance or config.options.fix_variance_m2}
 
 
@@ -137,13 +161,13 @@ def scores(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
            r_m2: float, good: np.ndarray) -> dict:
     """Return RMSE and coverage over every later fix and over the good later fixes."""
     # Before the direction is decided the node holds the fixes: no prediction to score.
-    target, valid = real_logs.later_fix(t, z)
-    scored = valid & np.isfinite(mean) & (t >= t[0] + real_logs.WARMUP_S)
+    target, valid = later_fix(t, z)
+    scored = valid & np.isfinite(mean) & np.isfinite(target) & (t >= t[0] + RAIL_WARMUP_S)
     error = mean[scored] - target[scored]
     band = 2.0 * np.sqrt(np.maximum(variance[scored], 0.0) + r_m2)
     rmse, coverage = float(np.sqrt(np.mean(error ** 2))), float(np.mean(np.abs(error) <= band))
     count = int(scored.sum())
-    later_good, _ = real_logs.later_fix(t, good.astype(float))
+    later_good, _ = later_fix(t, good.astype(float))
     scored &= later_good == 1.0
     error = mean[scored] - target[scored]
     return {'rmse_m': rmse, 'coverage': coverage, 'count': count,
@@ -204,6 +228,45 @@ def network_paths(data: Path, logs: dict) -> None:
                         'first elements equal', "tp-lib's path runs an element twice"), rows))
 
 
+def network_replays(data: Path, logs: dict, cache: Path, args: argparse.Namespace) -> None:
+    """Print, per log, the node on the path chosen offline and on the network, live."""
+    from kf_train.io.track_network import TrackNetwork
+    network_file = data / 'network_airport.geojson'
+    network = TrackNetwork.from_file(network_file)
+    rows = []
+    for name, files in logs.items():
+        start = time.perf_counter()
+        series, _ = real_logs.load_series(name, files, cache)
+        fixes = fixes_in_order(files[0])
+        t, cross = series['t_s'], np.abs(series['cross_m'])
+        gross, good = cross > GROSS_CROSS_M, cross <= GOOD_CROSS_M
+        bag_path = cache / 'bags' / f'{name}-fix'
+        write_fix_bag(fixes, bag_path)
+        path = network.match(fixes['lat'], fixes['lon'])
+        offline = cache / 'tracks' / f'{name}-offline-path.geojson'
+        offline.write_text(json.dumps({'type': 'LineString',
+                                       'coordinates': network.path_lonlat(path).tolist()}))
+        names = [element for element, _ in path]
+        for label, track in (('offline path', offline), ('live', network_file)):
+            run = replay_track(bag_path, track, args.param or [], gross)
+            # Each mode against the later fix it released, its own x (NaN: not released).
+            d = scores(t, run['released_x_m'], run['mean'], run['variance'], run['r_m2'],
+                       good)
+            elements = run['elements'] or names
+            rows.append((
+                name, label, len(elements), 'yes' if elements == names else 'no',
+                int(np.isfinite(run['released_x_m']).sum()), int(run['off_track'].sum()),
+                f"{int((run['off_track'] & gross).sum())} / {int(gross.sum())}",
+                f"{int((run['off_track'] & good).sum())} / {int(good.sum())}",
+                sum(run['resets'].values()) + run['reacquisitions'],
+                f"{len(run['starts'])} / {int(sum(gross[k] for k in run['starts']))}",
+                f"{d['rmse_m']:.2f}", f"{d['rmse_good_m']:.2f}", f"{100 * d['coverage']:.1f} %"))
+        print(f'{name} ({time.perf_counter() - start:.1f} s)', flush=True)
+    print(format_table(('log', 'mode', 'elements', 'as offline', 'released', 'off track',
+                        'gross rejected', 'good rejected', 'lock-outs', 'starts / from gross',
+                        'RMSE all [m]', 'RMSE good [m]', '2σ cov.'), rows))
+
+
 def print_table(results: List[dict], labels) -> None:
     """Print one row per log and mode."""
     rows = []
@@ -244,6 +307,9 @@ def main() -> int:
     parser.add_argument('--network', action='store_true',
                         help="only choose each log's path on network_airport.geojson and "
                              "compare it with tp-lib's path calculation")
+    parser.add_argument('--live', action='store_true',
+                        help='with --network: replay each log on the path chosen offline and '
+                             'on the network, the path chosen live, and compare')
     args = parser.parse_args()
     cache = Path(args.cache).expanduser()
     data = real_logs.data_dir(args, cache)
@@ -252,8 +318,11 @@ def main() -> int:
         wanted = {w if w.startswith('log_') else f'log_{w}' for w in args.logs.split(',')}
         logs = {k: v for k, v in logs.items() if k in wanted}
     if args.network:
-        network_paths(data if (data / 'network_airport.geojson').exists()
-                      else data / 'test-data', logs)
+        data = data if (data / 'network_airport.geojson').exists() else data / 'test-data'
+        if args.live:
+            network_replays(data, logs, cache, args)
+        else:
+            network_paths(data, logs)
         return 0
     results = []
     for name, files in logs.items():

@@ -163,7 +163,8 @@ def _parser() -> argparse.ArgumentParser:
                           '-p velocity_type:=none fuses none)')
     bag.add_argument('--track', metavar='FILE', default=None,
                      help='the measurement topic is sensor_msgs/NavSatFix, projected onto '
-                          'this track (GeoJSON LineString or CSV lat,lon): the same as -p '
+                          'this track (GeoJSON LineString or CSV lat,lon; or a network of '
+                          'LineStrings: the path chosen live, fix by fix): the same as -p '
                           'measurement_type:=navsatfix -p track:=FILE. With it INPUT may '
                           'also be a CSV of fixes: t [s], lat, lon [deg], optional '
                           'accuracy_m (horizontal σ [m])')
@@ -277,7 +278,9 @@ def _fixes_text(fixes: dict) -> str:
     """Return what the track did with the fixes, for the summary line."""
     return (f"({fixes['fixes.received']} fixes: {fixes['fixes.no_fix']} without a position, "
             f"{fixes['fixes.off_track']} off the track, {fixes['fixes.pending']} held; "
-            f"direction {fixes['track_direction']}), ")
+            f"direction {fixes['track_direction']}"
+            + (f", last on element {fixes['track_element']}" if 'track_element' in fixes
+               else '') + '), ')
 
 
 if __name__ == '__main__':

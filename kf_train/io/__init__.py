@@ -9,7 +9,9 @@ what an input path names, checks an output path and writes a file atomically.
 The bag modules (``bagio``, ``bagio_output``, ``bagio_simulation``) need ``rosbags``
 (the extra ``[bag]``): they are imported when used (``from kf_train.io import bagio``),
 not here. :mod:`~kf_train.io.track_geometry` and :mod:`~kf_train.io.track_fixes` (WGS 84
-fixes on a track file) need ``pyproj`` (the extra ``[track]``) once a geometry is built.
+fixes on a track file), :mod:`~kf_train.io.track_network` and
+:mod:`~kf_train.io.track_network_live` (a network: the path chosen offline or live) need
+``pyproj`` (the extra ``[track]``) once a geometry is built.
 """  # noqa: A005 (see below)
 
 # The name shadows the standard library's io only for code run with kf_train/ itself on
@@ -32,17 +34,18 @@ from kf_train.io.track_fixes import (
     TrackFixes)
 from kf_train.io.track_geometry import load_track, TrackError, TrackGeometry
 from kf_train.io.track_network import is_network_file, TrackNetwork
+from kf_train.io.track_network_live import NetworkFixes
 
 __all__ = [
-    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS',
-    'check_output_path', 'check_time_range', 'check_times', 'columnar', 'CROSS_TRACK_MAX_M',
-    'CROSS_TRACK_SIGMAS', 'csvio', 'decode_text', 'Fields', 'Fix', 'fix_from_msg',
-    'format_csv', 'format_labels', 'format_rows', 'format_values', 'HEADER_LINE',
-    'header_names', 'ID_COLUMN', 'in_background', 'InputError', 'is_bag', 'is_network_file',
-    'load_track', 'open_output', 'Output', 'parse_labels', 'parse_numbers', 'parse_rows',
-    'read_table', 'required_columns', 'resolve_columns', 'split_fields', 'Table',
-    'time_order_error', 'TRACK_DIRECTIONS', 'TrackError', 'TrackFix', 'TrackFixes',
-    'TrackGeometry', 'TrackNetwork', 'UTF8_BOM', 'write_atomic',
+    'bagio', 'bagio_output', 'bagio_simulation', 'BLOCK_FIELDS', 'BLOCK_ROWS', 'check_output_path',
+    'check_time_range', 'check_times', 'columnar', 'CROSS_TRACK_MAX_M', 'CROSS_TRACK_SIGMAS',
+    'csvio', 'decode_text', 'Fields', 'Fix', 'fix_from_msg', 'format_csv', 'format_labels',
+    'format_rows', 'format_values', 'HEADER_LINE', 'header_names', 'ID_COLUMN', 'in_background',
+    'InputError', 'is_bag', 'is_network_file', 'load_track', 'NetworkFixes', 'open_output',
+    'Output', 'parse_labels', 'parse_numbers', 'parse_rows', 'read_table', 'required_columns',
+    'resolve_columns', 'split_fields', 'Table', 'time_order_error', 'TRACK_DIRECTIONS',
+    'TrackError', 'TrackFix', 'TrackFixes', 'TrackGeometry', 'TrackNetwork', 'UTF8_BOM',
+    'write_atomic',
 ]
 
 # bagio_mcap, bagio_ros1 and bagio_types, which the bag modules use, import rosbags too.

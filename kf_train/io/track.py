@@ -29,6 +29,14 @@ def polyline_arc_lengths_m(vertices_m: np.ndarray) -> np.ndarray:
     return np.concatenate(([0.0], np.cumsum(steps)))
 
 
+def polyline_tangents(vertices_m: np.ndarray, arc_m: np.ndarray, s_m) -> np.ndarray:
+    """Return the (N, 2) unit direction of a polyline (distinct vertices) at arc lengths s_m."""
+    segment = np.clip(np.searchsorted(arc_m, np.atleast_1d(s_m), side='right') - 1,
+                      0, arc_m.size - 2)
+    step = vertices_m[segment + 1] - vertices_m[segment]
+    return step / np.hypot(step[:, 0], step[:, 1])[:, None]
+
+
 def _window(bound: ArrayOrFloat, count: int, fill: float) -> np.ndarray:
     """Return a per-point bound (count,) from None, a scalar or an array."""
     if bound is None:

@@ -52,6 +52,12 @@ STATUS_NO_FIX = -1
 """sensor_msgs/NavSatStatus status without a position (below it: none either)."""
 
 
+def held_run_m(s_m: np.ndarray) -> float:
+    """Return how far held fixes ran along a line: latest DIRECTION_FIXES' median minus first's."""
+    k = min(DIRECTION_FIXES, max(1, s_m.size // 2))
+    return float(np.median(s_m[-k:]) - np.median(s_m[:k]))
+
+
 class Fix(NamedTuple):
     """A sensor_msgs/NavSatFix as the track reads it (and when it was recorded, if read)."""
 
@@ -146,8 +152,27 @@ class TrackFixes:
         if not np.all(np.isfinite(points)):      # beyond the map's reach: surely off it
             counts.off_track += 1
             return []
-        s_m, cross_m, tangent = self.geometry.project_local(points)
-        along, across = tangent[0], np.array([-tangent[0, 1], tangent[0, 0]])
+        return self._locate(tag, points, covariance_en_m2)
+
+    def _locate(self, tag: Any, points_m: np.ndarray,
+                covariance_en_m2: Optional[np.ndarray]) -> List[TrackFix]:
+        """Project a fix (its (1, 2) point in the frame) onto the track; gate it; orient it."""
+        s_m, cross_m, tangent = self.geometry.project_local(points_m)
+        fix = self._gated(tag, float(s_m[0]), float(cross_m[0]), tangent[0], covariance_en_m2)
+        if fix is None:
+            return []
+        counts = self.counts
+        if counts.direction == 'reverse':
+            fix = self._reverse(fix)
+        elif counts.direction == 'auto':
+            return self._hold(fix)
+        counts.fused += 1
+        return [fix]
+
+    def _gated(self, tag: Any, x_m: float, cross_m: float, tangent: np.ndarray,
+               covariance_en_m2: Optional[np.ndarray]) -> Optional[TrackFix]:
+        """Return the fix at x_m, its variance along the unit tangent; None (counted): off."""
+        along, across = tangent, np.array([-tangent[1], tangent[0]])
         if covariance_en_m2 is None:
             variance_m2 = cross_variance_m2 = self.variance_m2
         else:
@@ -156,16 +181,10 @@ class TrackFixes:
             cov = np.asarray(covariance_en_m2, dtype=float).reshape(2, 2)
             variance_m2 = float(along @ cov @ along)
             cross_variance_m2 = float(across @ cov @ across)
-        if abs(cross_m[0]) > self.cross_track_bound_m(cross_variance_m2):
-            counts.off_track += 1
-            return []
-        fix = TrackFix(tag, float(s_m[0]), variance_m2, float(cross_m[0]))
-        if counts.direction == 'reverse':
-            fix = self._reverse(fix)
-        elif counts.direction == 'auto':
-            return self._hold(fix)
-        counts.fused += 1
-        return [fix]
+        if abs(cross_m) > self.cross_track_bound_m(cross_variance_m2):
+            self.counts.off_track += 1
+            return None
+        return TrackFix(tag, x_m, variance_m2, cross_m)
 
     def _reverse(self, fix: TrackFix) -> TrackFix:
         """Return a fix on the track as drawn, re-measured from its far end."""
@@ -178,9 +197,7 @@ class TrackFixes:
         if len(self._pending) > PENDING_MAX:
             self._pending.pop(0)
             counts.dropped_pending += 1
-        s_m = np.array([f.x_m for f in self._pending])
-        k = min(DIRECTION_FIXES, max(1, s_m.size // 2))
-        run_m = float(np.median(s_m[-k:]) - np.median(s_m[:k]))
+        run_m = held_run_m(np.array([f.x_m for f in self._pending]))
         if abs(run_m) < self.direction_min_m:
             counts.pending = len(self._pending)
             return []

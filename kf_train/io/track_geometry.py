@@ -24,7 +24,8 @@ import json
 from pathlib import Path
 from typing import Optional, Sequence, Tuple
 
-from kf_train.io.track import polyline_arc_lengths_m, project_onto_polyline
+from kf_train.io.track import (
+    polyline_arc_lengths_m, polyline_tangents, project_onto_polyline)
 import numpy as np
 
 CHAIN_TOLERANCE_M = 1.0
@@ -163,10 +164,7 @@ class TrackGeometry:
 
     def tangent(self, s_m) -> np.ndarray:
         """Return the (N, 2) unit direction (east, north) of the track at arc lengths s_m."""
-        segment = np.clip(np.searchsorted(self.arc_m, np.atleast_1d(s_m), side='right') - 1,
-                          0, self.arc_m.size - 2)
-        step = self.vertices_m[segment + 1] - self.vertices_m[segment]
-        return step / np.hypot(step[:, 0], step[:, 1])[:, None]
+        return polyline_tangents(self.vertices_m, self.arc_m, s_m)
 
 
 def load_track(path, reversed_: Optional[bool] = False) -> TrackGeometry:

@@ -17,15 +17,16 @@ flat beyond MATCH_CAP_M so that a gross fix cannot pull the path away); the stat
 stay, or pass to an element joined at its far end (up to MAX_HOPS elements on between
 two fixes, SWITCH_COST per element entered). The result is the chain of elements in
 travel order, which :meth:`TrackNetwork.path_lonlat` turns into one line for
-:class:`kf_train.io.track_geometry.TrackGeometry`. Live (a path chosen as the fixes
-come) is not done.
+:class:`kf_train.io.track_geometry.TrackGeometry`. The same model, run forward fix by
+fix as the fixes come, is :mod:`kf_train.io.track_network_live`: :meth:`distances_m`,
+:func:`emission` and :meth:`TrackNetwork.transition` are the one home of both.
 """
 
 import json
 from pathlib import Path
 from typing import Dict, List, Sequence, Tuple
 
-from kf_train.io.track import project_onto_polyline
+from kf_train.io.track import polyline_arc_lengths_m
 from kf_train.io.track_geometry import TrackError, TrackGeometry
 import numpy as np
 
@@ -34,6 +35,8 @@ MATCH_SIGMA_M = 10.0
 MATCH_CAP_M = 40.0
 SWITCH_COST = 5.0
 MAX_HOPS = 3
+_PAIRS_PER_CHUNK = 1 << 19
+"""Point-segment pairs per vectorised chunk of distances_m: bounds its arrays to ~20 MB."""
 
 
 def is_network_file(path) -> bool:
@@ -46,6 +49,12 @@ def is_network_file(path) -> bool:
         return False
     return sum((f.get('geometry') or {}).get('type') == 'LineString'
                for f in document.get('features') or [] if isinstance(f, dict)) > 1
+
+
+def emission(distance_m: np.ndarray) -> np.ndarray:
+    """Return the log-likelihood of fixes (N, E) at distance_m from the elements, per state."""
+    score = -0.5 * (np.minimum(distance_m, MATCH_CAP_M) / MATCH_SIGMA_M) ** 2
+    return np.repeat(score, 2, axis=-1)                     # both directions alike
 
 
 def _elements(document: dict) -> Tuple[List[str], List[np.ndarray], List[dict]]:
@@ -72,6 +81,15 @@ class TrackNetwork:
         frame = TrackGeometry(np.concatenate(self.lonlat))      # one frame for all
         self.frame = frame
         self.lines_m = [frame.to_local(line[:, 1], line[:, 0]) for line in self.lonlat]
+        self.lengths_m = np.array([polyline_arc_lengths_m(line)[-1] for line in self.lines_m])
+        # Every element's segments in one table (repeated vertices dropped), for distances_m.
+        distinct = [line[np.concatenate(([True], np.any(np.diff(line, axis=0) != 0.0, axis=1)))]
+                    for line in self.lines_m]
+        self._first_segment = np.cumsum([0] + [len(v) - 1 for v in distinct[:-1]])
+        self._segment_start = np.concatenate([v[:-1] for v in distinct])
+        step = np.concatenate([np.diff(v, axis=0) for v in distinct])
+        self._segment_length = np.hypot(step[:, 0], step[:, 1])
+        self._segment_unit = step / self._segment_length[:, None]
         count = len(self.ids)
         # joins[(element, end)] = [(element, end), ...]: ends 0 (first vertex) or 1.
         self.joins: Dict[Tuple[int, int], List[Tuple[int, int]]] = {
@@ -112,13 +130,13 @@ class TrackNetwork:
                     self.joins[first].append(second)
                     self.joins[second].append(first)
 
-    def _successors(self, state: int) -> List[int]:
+    def successors(self, state: int) -> List[int]:
         """Return the states one element on: state = 2 element + direction (1: reversed)."""
         e, direction = divmod(state, 2)
         exit_end = 1 - direction                   # run forwards: leaves by its end 1
         return [2 * f + (1 if entry_end == 1 else 0) for f, entry_end in self.joins[(e, exit_end)]]
 
-    def _hops(self) -> np.ndarray:
+    def hops(self) -> np.ndarray:
         """Return the fewest elements entered from each state to each (inf: beyond MAX_HOPS)."""
         count = 2 * len(self.ids)
         hops = np.full((count, count), np.inf)
@@ -126,26 +144,49 @@ class TrackNetwork:
         for start in range(count):
             frontier = [start]
             for hop in range(1, MAX_HOPS + 1):
-                frontier = [s for f in frontier for s in self._successors(f)
+                frontier = [s for f in frontier for s in self.successors(f)
                             if hops[start, s] == np.inf]
                 for s in frontier:
                     hops[start, s] = hop
         return hops
 
+    def distances_m(self, points_m: np.ndarray) -> np.ndarray:
+        """Return the (N, E) distance of points (N, 2) in the network's frame to each element."""
+        points = np.asarray(points_m, dtype=float).reshape(-1, 2)
+        start, unit = self._segment_start, self._segment_unit
+        out = np.empty((points.shape[0], len(self.ids)))
+        chunk = max(1, _PAIRS_PER_CHUNK // start.shape[0])
+        for first in range(0, points.shape[0], chunk):
+            part = points[first:first + chunk, None, :]
+            along = np.clip(((part - start) * unit).sum(axis=2), 0.0, self._segment_length)
+            gap = part - (start + along[..., None] * unit)         # to the foot on each
+            out[first:first + chunk] = np.minimum.reduceat(
+                np.hypot(gap[..., 0], gap[..., 1]), self._first_segment, axis=1)
+        return out
+
+    def transition(self) -> np.ndarray:
+        """Return the (S, S) log-probability of passing from state to state between two fixes."""
+        return -SWITCH_COST * self.hops()                       # -inf beyond reach
+
+    def entry_offsets_m(self, hops: np.ndarray) -> np.ndarray:
+        """Return (S, S): the run from entering a state to entering one reachable from it [m]."""
+        offsets = np.zeros(hops.shape)
+        for start, goal in zip(*np.nonzero(np.isfinite(hops) & (hops > 0))):
+            way = [int(start)] + self._between(int(start), int(goal))
+            offsets[start, goal] = self.lengths_m[np.array(way) // 2].sum()
+        return offsets
+
     def match(self, lat_deg: Sequence[float], lon_deg: Sequence[float]) -> List[Tuple[str, bool]]:
         """Return the path of the fixes: (element id, run reversed) in travel order."""
         points = self.frame.to_local(lat_deg, lon_deg)
-        distance = np.column_stack([np.abs(project_onto_polyline(points, line)[1])
-                                    for line in self.lines_m])
-        emission = -0.5 * (np.minimum(distance, MATCH_CAP_M) / MATCH_SIGMA_M) ** 2
-        emission = np.repeat(emission, 2, axis=1)               # both directions alike
-        transition = -SWITCH_COST * self._hops()                 # -inf beyond reach
-        score = emission[0].copy()
-        back = np.zeros(emission.shape, dtype=np.int32)
+        emissions = emission(self.distances_m(points))
+        transition = self.transition()
+        score = emissions[0].copy()
+        back = np.zeros(emissions.shape, dtype=np.int32)
         for k in range(1, len(points)):
             total = score[:, None] + transition
             back[k] = np.argmax(total, axis=0)
-            score = total[back[k], np.arange(total.shape[1])] + emission[k]
+            score = total[back[k], np.arange(total.shape[1])] + emissions[k]
         states = [int(np.argmax(score))]
         for k in range(len(points) - 1, 0, -1):
             states.append(int(back[k, states[-1]]))
@@ -166,7 +207,7 @@ class TrackNetwork:
         while frontier and goal not in previous:
             following = []
             for f in frontier:
-                for s in self._successors(f):
+                for s in self.successors(f):
                     if s not in previous:
                         previous[s] = f
                         following.append(s)

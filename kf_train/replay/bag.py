@@ -260,9 +260,7 @@ def replay_bag(bag_path: str, output_path: str, config, topic: Optional[str] = N
         if is_rail(preset) else None
     with bagio.BagInput(bag_path, measurement_type, control_type, topic,
                         control_topic, velocity_type, velocity_topic) as bag:
-        from kf_train.replay.fix_table import network_path   # a network: the path first
-        with network_path(config, bag.messages()) as config:
-            return replay_source(bag, output_path, config, start)
+        return replay_source(bag, output_path, config, start)
 
 
 def replay_source(bag, output_path: str, config, start: Optional[float] = None

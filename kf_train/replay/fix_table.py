@@ -11,21 +11,16 @@ estimator node's session exactly as a NavSatFix from a bag does
 time as stamp and record time: the outputs (CSV or MCAP) are the bag replay's.
 
 A ``--track`` file that is a network (a FeatureCollection of several LineStrings), for
-a table or a bag: the path is first chosen from all the fixes (:func:`network_path`),
-then the replay runs on it.
+a table or a bag: the path is chosen live, fix by fix, as the node does
+(:mod:`kf_train.io.track_network_live`).
 """
 
-import contextlib
 import csv
-import json
 import math
-import os
-import tempfile
-from typing import Iterable, Iterator, List
+from typing import Iterator, List
 
 from kf_train.filters import NS_PER_S
-from kf_train.io import Fix, is_network_file, TrackNetwork
-from kf_train.ros import estimator_params
+from kf_train.io import Fix
 import numpy as np
 
 TIME, LAT, LON, ACCURACY = 't', 'lat', 'lon', 'accuracy_m'
@@ -98,35 +93,4 @@ def replay_fix_table(table_path: str, output_path: str, config):
     from kf_train.replay import bag     # the node's session replay; needs rosbags
     if config.options.measurement_type != 'navsatfix':
         raise ValueError('a fix table needs --track FILE (measurement_type navsatfix)')
-    table = FixTable(table_path)
-    with network_path(config, table.messages()) as config:
-        return bag.replay_source(table, output_path, config)
-
-
-@contextlib.contextmanager
-def network_path(config, fixes: Iterable[Fix]):
-    """
-    Yield ``config``, its ``track`` the path the fixes ran when that file is a network.
-
-    Offline only, in hindsight: the path is chosen from every fix at once
-    (:class:`kf_train.io.TrackNetwork`), written as a LineString to a temporary file
-    that lives while the context does, and the replay runs on it as on a track.
-    """
-    track = config.values['track']
-    if config.options.measurement_type != 'navsatfix' or not is_network_file(track):
-        yield config
-        return
-    usable = [f for f in fixes if f.has_fix and math.isfinite(f.lat_deg + f.lon_deg)]
-    if not usable:
-        raise ValueError(f'{track}: a network, and no fix to choose the path with')
-    try:
-        network = TrackNetwork.from_file(track)
-    except ImportError:
-        raise ValueError("a track needs pyproj (pip install 'kf_train[track]')") from None
-    path = network.match([f.lat_deg for f in usable], [f.lon_deg for f in usable])
-    with tempfile.TemporaryDirectory(prefix='kf_train_path_') as directory:
-        line = os.path.join(directory, 'path.geojson')
-        with open(line, 'w', encoding='utf-8') as stream:
-            json.dump({'type': 'LineString', 'coordinates': network.path_lonlat(path).tolist(),
-                       'properties': {'path': [name for name, _ in path]}}, stream)
-        yield estimator_params.estimator_config({**config.values, 'track': line})
+    return bag.replay_source(FixTable(table_path), output_path, config)

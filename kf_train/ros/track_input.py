@@ -3,11 +3,13 @@ The estimator's NavSatFix input: fixes on a track file become along-track measur
 
 With ``measurement_type`` ``navsatfix`` the ``measurement`` topic carries
 sensor_msgs/NavSatFix and ``track`` names the track's geometry (a GeoJSON LineString
-or a CSV with a ``lat,lon`` header: :mod:`kf_train.io.track_geometry`). Each fix goes
+or a CSV with a ``lat,lon`` header: :mod:`kf_train.io.track_geometry`) or a network
+(LineStrings joined at switches: :mod:`kf_train.io.track_network`). Each fix goes
 through :class:`kf_train.io.track_fixes.TrackFixes` (cross-track gate, direction of
-travel) and what it releases is fused as a position measurement: the node
-(:mod:`kf_train.ros.estimator_node`) and ``kf-train replay BAG`` both do it through
-:class:`TrackInput`, so they fuse the same numbers.
+travel), on a network through :class:`kf_train.io.track_network_live.NetworkFixes`
+(the same, on the path chosen live), and what it releases is fused as a position
+measurement: the node (:mod:`kf_train.ros.estimator_node`) and ``kf-train replay BAG``
+both do it through :class:`TrackInput`, so they fuse the same numbers.
 
 * ``status.status`` < 0 (STATUS_NO_FIX): ignored, counted (``fixes.no_fix``).
 * ``position_covariance_type`` COVARIANCE_TYPE_UNKNOWN (0): the fix's variance is
@@ -18,15 +20,16 @@ travel) and what it releases is fused as a position measurement: the node
 * The message is read by attribute (:func:`kf_train.io.track_fixes.fix_from_msg`), so
   a rosbags message from a bag reads the same as an rclpy one.
 
-The counts go to ``/diagnostics`` (``fixes.*``, ``track_direction``) and to the
+The counts go to ``/diagnostics`` (``fixes.*``, ``track_direction``; on a network
+``track_element``, the element the train is on) and to the
 replay's statistics.
 """
 
 from typing import List, NamedTuple, Optional, Tuple
 
 from kf_train.io import (
-    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, Fix, load_track, TRACK_DIRECTIONS, TrackError,
-    TrackFixes)
+    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, Fix, is_network_file, load_track, NetworkFixes,
+    TRACK_DIRECTIONS, TrackError, TrackFixes, TrackNetwork)
 from kf_train.ros.param_spec import BIG, ParameterError, ParamSpec
 
 MEASUREMENT_TYPES = ('pose', 'navsatfix')
@@ -48,7 +51,10 @@ PARAMETERS_TRACK = (
         'track', 'string', '',
         "measurement_type navsatfix: the track's geometry, a GeoJSON LineString (bare, a "
         'Feature or a FeatureCollection holding one) or a CSV with a lat,lon header, in '
-        'WGS 84; x is the distance along it.' + _FIXED,
+        'WGS 84; x is the distance along it. Or a network, a GeoJSON FeatureCollection of '
+        'LineStrings joined at switches: the path is chosen live from the fixes (map '
+        'matching) and x is the distance along the path taken, 0 at the first fix '
+        '(track_direction auto).' + _FIXED,
         constraints="a file path, or '' with measurement_type pose", live=False,
         group=_GROUP),
     ParamSpec(
@@ -100,17 +106,25 @@ class TrackInput:
             raise ParameterError('measurement_type navsatfix needs a preset measuring a '
                                  'position alone')
         try:
-            geometry = load_track(values['track'])
+            self.fixes = self._fixes(values)
         except (OSError, TrackError) as error:
             raise ParameterError(f"track {values['track']!r}: {error}") from None
         except ImportError:
             raise ParameterError('measurement_type navsatfix needs pyproj (pip install '
                                  "'kf_train[track]')") from None
-        self.fixes = TrackFixes(geometry, values['fix_variance_m2'],
-                                values['cross_track_max_m'], values['cross_track_sigmas'],
-                                values['track_direction'])
         self.last_measurement: Optional[TrackMeasurement] = None
         """The newest measurement released (its variance: the gate's reach), or None."""
+
+    @staticmethod
+    def _fixes(values) -> TrackFixes:
+        """Return the fixes' projection: onto the track file, or live onto a network."""
+        gates = (values['fix_variance_m2'], values['cross_track_max_m'],
+                 values['cross_track_sigmas'])
+        if not is_network_file(values['track']):
+            return TrackFixes(load_track(values['track']), *gates, values['track_direction'])
+        if values['track_direction'] != TRACK_DIRECTIONS[0]:
+            raise TrackError('a network: track_direction must be auto (the path decides)')
+        return NetworkFixes(TrackNetwork.from_file(values['track']), *gates)
 
     def measurements(self, fix: Fix) -> List[TrackMeasurement]:
         """Return the position measurements a fix releases (none, one, or the held ones)."""
@@ -128,4 +142,7 @@ class TrackInput:
         return [('fixes.received', str(counts.fixes)), ('fixes.no_fix', str(counts.no_fix)),
                 ('fixes.off_track', str(counts.off_track)),
                 ('fixes.pending', str(counts.pending)),
-                ('track_direction', counts.direction)]
+                ('track_direction', counts.direction)] + (
+                    [('track_element', '-' if self.fixes.element is None
+                      else self.fixes.element[0])]
+                    if isinstance(self.fixes, NetworkFixes) else [])

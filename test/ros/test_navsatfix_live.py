@@ -149,3 +149,39 @@ def test_navsatfix_live_and_bag_replay_are_bit_equal(ros_context, executor, tmp_
                            ('innovation', vector_numbers)):
         assert len(live[topic]) == len(replayed[topic]) > 50, topic
         assert [numbers(m) for m in live[topic]] == [numbers(m) for m in replayed[topic]]
+
+
+def write_network(path, switch_m=150.0):
+    """Write a network: A from START to a switch, B straight on, C diverging 8°."""
+    switch = GEOD.fwd(*START, AZIMUTH_DEG, switch_m)[:2]
+    a = [START, switch]
+    b = [switch, GEOD.fwd(*switch, AZIMUTH_DEG, 1000.0)[:2]]
+    c = [switch, GEOD.fwd(*switch, AZIMUTH_DEG + 8.0, 1000.0)[:2]]
+    path.write_text(json.dumps({'type': 'FeatureCollection', 'features': [
+        {'type': 'Feature', 'properties': {'id': name},
+         'geometry': {'type': 'LineString', 'coordinates': [list(p) for p in line]}}
+        for name, line in (('A', a), ('B', b[::-1]), ('C', c))]}))
+    return path
+
+
+def test_navsatfix_on_a_network_live_and_replayed(ros_context, executor, tmp_path):
+    """A network: the path chosen live, through the switch onto B; bit-equal from a bag."""
+    network = write_network(tmp_path / 'network.geojson')
+    fixes = fix_sequence(time.time_ns() - 60 * NS)
+    node, live = live_fix_outputs(ros_context, executor, fixes, {
+        'measurement_type': 'navsatfix', 'track': str(network), 'history_s': 5.0})
+    counts = node.session.track.fixes.counts
+    assert counts.no_fix == 1 and counts.off_track == 1
+    assert counts.fused == len(fixes) - 2 == node.session.received
+    values = dict(node.session.diagnostics(0).values)
+    assert values['track_element'] == 'B' and values['track_direction'] == 'forward'
+    # x from the first fix (50 m from START, 1-m noise), growing with the travel.
+    x = np.array([m.pose.pose.position.x for m in live['estimate']])
+    t_s = np.array([messages.stamp_to_ns(m.header.stamp) - messages.stamp_to_ns(
+        fixes[0].header.stamp) for m in live['estimate']]) / NS
+    assert np.all(np.abs(x - SPEED_MPS * t_s)[10:] < 5.0)
+    replayed = replay_fix_outputs(tmp_path, fixes, network, ['history_s:=5.0'])
+    for topic, numbers in (('estimate', odometry_numbers), ('prediction', odometry_numbers),
+                           ('innovation', vector_numbers)):
+        assert len(live[topic]) == len(replayed[topic]) > 50, topic
+        assert [numbers(m) for m in live[topic]] == [numbers(m) for m in replayed[topic]]
