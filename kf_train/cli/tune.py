@@ -177,7 +177,7 @@ def check_rail_args(parser, args) -> List[str]:
             parser.error(f'{option} does not apply to the rail preset (it has no q; '
                          'its noises are acceleration_noise and command_noise)')
     if args.horizon is not None:
-        parser.error("--horizon does not apply to the rail preset (the held-out part is "
+        parser.error('--horizon does not apply to the rail preset (the held-out part is '
                      "scored at the node's horizon: the preset's horizon_s)")
     if args.initialization == 'prior':
         parser.error('--initialization prior does not apply to the rail preset (the node '

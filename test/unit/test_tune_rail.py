@@ -7,7 +7,7 @@ from kf_train.batch.noise_likelihood import Segment
 from kf_train.batch.rail_likelihood import rail_log_likelihoods, RailNoise
 from kf_train.cli import main as kf_train_main
 from kf_train.cli.tune import main as tune_main
-from kf_train.estimator import EstimatorSettings, StreamEstimator
+from kf_train.estimator import StreamEstimator
 from kf_train.estimator.live_presets import resolve_preset
 from kf_train.filters import chi2_mean_bounds, RailModel, RailModelParameters
 from kf_train.presets import load_rail_preset, RailPreset
