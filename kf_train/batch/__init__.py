@@ -7,8 +7,7 @@ filters many objects (rows tagged by id) as a vectorised bank, the one engine fo
 objects at once; :func:`rts_smooth` / :func:`smooth_series` smooth.
 :class:`RailSeriesFilter` runs the rail preset's IMM row by row, started by the first
 measurement; :func:`rail_log_likelihoods` is its IMM likelihood for many noise settings in
-one pass, which ``kf-train tune --preset rail`` maximises, and :func:`rail_check` its
-innovations and prediction errors.
+one pass, which ``kf-train tune --preset rail`` maximises (its innovations too).
 :class:`StreamingReplay` filters a table of any length in fixed blocks (bounded
 memory), :func:`filter_table` the same on arrays, :func:`filter_partition` one Dask
 partition.
@@ -36,7 +35,6 @@ from kf_train.batch.noise_parameters import (
     LikelihoodProblem, NoiseParameterisation, Parameter, Parameterisation, VARIANCE_UNITS)
 from kf_train.batch.noise_suggestion import NoiseSuggestion, RunningNoiseEstimate
 from kf_train.batch.partition import filter_partition, partition_meta
-from kf_train.batch.rail_checks import rail_check, RailCheck, RailPrediction
 from kf_train.batch.rail_likelihood import (
     rail_log_likelihoods, RAIL_NOISE_FIELDS, RailLikelihoods, RailNoise)
 from kf_train.batch.rail_series import RailSeriesFilter
@@ -49,7 +47,7 @@ from kf_train.batch.stream import filter_table, GapsFound, StreamingReplay
 from kf_train.presets import is_constant_velocity, measured_states
 
 __all__ = [
-    'RailSeriesFilter', 'rail_check', 'RailCheck', 'RailPrediction', 'RAIL_NOISE_FIELDS',
+    'RailSeriesFilter', 'RAIL_NOISE_FIELDS',
     'rail_log_likelihoods', 'RailLikelihoods', 'RailNoise',
     'affine_recursion', 'bank_time_steps', 'ConsistencyReport', 'CONVERGED_ULPS',
     'DEFAULT_BLOCK_ROWS', 'Estimates', 'filter_partition',

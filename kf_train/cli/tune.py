@@ -104,7 +104,7 @@ def _parser() -> argparse.ArgumentParser:
                              'nominal period before the first row of each object, as the node)')
     parser.add_argument('--horizon', metavar='S', type=float,
                         help="prediction horizon of the RMSE [s] (default: the preset's, "
-                             'else 2)')
+                             'else 2; not for rail: its horizon_s)')
     parser.add_argument('--confidence', metavar='P', type=float, default=0.95,
                         help='confidence of the intervals (0.95)')
     add_rail_arguments(parser)
@@ -176,6 +176,9 @@ def check_rail_args(parser, args) -> List[str]:
         if getattr(args, attribute, None) not in (None, False):
             parser.error(f'{option} does not apply to the rail preset (it has no q; '
                          'its noises are acceleration_noise and command_noise)')
+    if args.horizon is not None:
+        parser.error('--horizon does not apply to the rail preset (the held-out part is '
+                     "scored at the node's horizon: the preset's horizon_s)")
     if args.initialization == 'prior':
         parser.error('--initialization prior does not apply to the rail preset (the node '
                      'starts it from the first measurement)')
