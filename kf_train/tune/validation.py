@@ -10,6 +10,13 @@ Is a tuned setting better where it was not fitted? ``kf-train tune``'s hold-out 
   2-s predictions made in the held-out windows (the filter warm, as in reality)
   against the later fix (:mod:`kf_train.evaluate.later_fix`) and, where the segment
   has it, against the truth;
+* the node's rail IMM runs compiled there whenever numba is installed (as the fit's
+  likelihood does), without the node's opt-in (KF_TRAIN_JIT), numpy otherwise
+  (``jit``). The compiled model is the numpy reference's equations in numba loops, held
+  to it at a norm-wise relative 1e-9 over random regimes, rewinds and speed updates
+  (test/unit/test_rail_fast.py): the scores can differ from a numpy node run only at
+  rounding level, far below the report's digits and WORSE_TOLERANCE (a gate decision
+  flips only for a NIS within rounding of the threshold);
 * :func:`model_verdict` says in plain words when the innovations' NIS or whiteness
   (:func:`kf_train.batch.nis_consistency`) shows that the model does not describe
   the data, and names the likely cause.
@@ -25,7 +32,7 @@ from kf_train.batch import ConsistencyReport, Segment
 from kf_train.estimator import (
     EstimatorSettings, NS_PER_S, Rejected, resolve_preset, StreamEstimator)
 from kf_train.evaluate import later_fix, later_fix_score
-from kf_train.filters import MODE_NAMES, STATE_NAMES
+from kf_train.filters import MODE_NAMES, numba_available, STATE_NAMES
 from kf_train.presets import RailPreset
 from kf_train.ros import estimator_params
 from kf_train.sim import RAIL_WARMUP_S
@@ -168,9 +175,9 @@ class _Run(NamedTuple):
 
 
 def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
-                 window: Tuple[float, float]) -> _Run:
+                 window: Tuple[float, float], jit: bool) -> _Run:
     """Run one segment; keep each fix's 2-s prediction, count the events in ``window``."""
-    estimator = StreamEstimator(settings)
+    estimator = StreamEstimator(settings, jit=jit)
     horizon_ns = round(estimator.horizon_s * NS_PER_S)
     N = s.t_s.shape[0]
     mean, variance, nis = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
@@ -211,7 +218,7 @@ def _preset_path(preset: Union[RailPreset, str], directory: str) -> str:
     return path
 
 
-def _runs(preset, segments, windows, variances, measurement_variance, settings
+def _runs(preset, segments, windows, variances, measurement_variance, settings, jit
           ) -> Iterator[Tuple[Segment, np.ndarray, _Run]]:
     """Yield (segment, rows scored, run) of every segment with a window."""
     with tempfile.TemporaryDirectory(prefix='kf-train-tune-') as directory:
@@ -225,7 +232,7 @@ def _runs(preset, segments, windows, variances, measurement_variance, settings
                 continue
             rows = (variances[k] if variances is not None
                     else np.full(s.t_s.shape[0], default_r))
-            run = _run_segment(node, s, rows, window)
+            run = _run_segment(node, s, rows, window, jit)
             yield s, (s.t_s >= window[0]) & (s.t_s < window[1]), run
 
 
@@ -233,7 +240,8 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
                   windows: Optional[Sequence[Window]] = None,
                   variances: Optional[Sequence[np.ndarray]] = None,
                   measurement_variance: float = 0.0,
-                  settings: Optional[EstimatorSettings] = None) -> SettingScore:
+                  settings: Optional[EstimatorSettings] = None,
+                  jit: Optional[bool] = None) -> SettingScore:
     """
     Return the node's 2-s predictions in ``windows`` scored (see :class:`SettingScore`).
 
@@ -242,14 +250,16 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
     ``variances``: each segment's rows' variances (a bag's), else the preset's R;
     ``measurement_variance``: the node's override (0: the rows'); ``settings``: the
     estimator's (default: the node's defaults; its preset and measurement_variance are
-    these arguments'). The filter runs every segment from its first row; only
+    these arguments'); ``jit``: the rail IMM compiled (None: where numba is installed;
+    see the module docstring). The filter runs every segment from its first row; only
     predictions made in the window are scored.
     """
     windows = warm_windows(segments) if windows is None else windows
+    jit = numba_available() if jit is None else jit
     fixes, truth, nis = [], [], []
     gated = resets = reacquired = 0
     for s, scored, run in _runs(preset, segments, windows, variances, measurement_variance,
-                                settings):
+                                settings, jit):
         fixes.append(later_fix_score(s.t_s, s.z[:, 0], run.mean, run.variance, run.r_m2,
                                      scored))
         if s.truth is not None:
