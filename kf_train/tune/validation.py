@@ -178,32 +178,39 @@ def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
                  window: Tuple[float, float], jit: bool) -> _Run:
     """Run one segment; keep each fix's 2-s prediction, count the events in ``window``."""
     estimator = StreamEstimator(settings, jit=jit)
-    horizon_ns = round(estimator.horizon_s * NS_PER_S)
+    process, horizon_ns = estimator.process, round(estimator.horizon_s * NS_PER_S)
     N = s.t_s.shape[0]
-    mean, variance, nis = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
-    gated = np.zeros(N, dtype=bool)
-    r_m2 = np.array([estimator.measurement_variance(float(v)) for v in variances])
-    inside = (s.t_s >= window[0]) & (s.t_s < window[1])
+    # Plain floats and lists: the loop runs ~100k times a tune, numpy scalars cost there.
+    z, given = s.z[:, 0].tolist(), np.asarray(variances, dtype=float).tolist()
+    mean, variance, nis = [math.nan] * N, [math.nan] * N, [math.nan] * N
+    gated = [False] * N
+    r_m2 = [estimator.measurement_variance(v) for v in given]
+    inside = ((s.t_s >= window[0]) & (s.t_s < window[1])).tolist()
+    # The stats at the window's edges: its first fix (before it) and its last (after).
+    edges = [k for k in range(N) if inside[k] and (k == 0 or not inside[k - 1])]
+    ends = {k for k in range(N) if inside[k] and (k == N - 1 or not inside[k + 1])}
     before = after = estimator.stats()
     for k, stamp_ns in enumerate(_stamps_ns(s.t_s).tolist()):
-        if inside[k] and (k == 0 or not inside[k - 1]):
+        if edges and k == edges[0]:
             before = estimator.stats()
+            edges.pop(0)
         try:
-            step = estimator.process(stamp_ns, float(s.z[k, 0]), float(variances[k]))
+            step = process(stamp_ns, z[k], given[k])
         except Rejected as rejection:
             step, gated[k] = None, rejection.reason == 'outlier'
         if step is not None and step.prediction_stamp_ns - step.stamp_ns == horizon_ns:
-            mean[k], variance[k] = step.predicted_x[0], step.predicted_P[0, 0]
+            mean[k], variance[k] = step.predicted_x.item(0), step.predicted_P.item(0)
             if step.update is not None:
                 nis[k] = step.update.nis
         elif estimator.initialized:        # rejected: the newest state, predicted on
             x, P = estimator.predict_to(stamp_ns + horizon_ns)
-            mean[k], variance[k] = x[0], P[0, 0]
+            mean[k], variance[k] = x.item(0), P.item(0)
         else:      # reset by this fix, not restarted yet: the fix held where it is
-            mean[k], variance[k] = s.z[k, 0], r_m2[k]
-        if inside[k] and (k == N - 1 or not inside[k + 1]):
+            mean[k], variance[k] = z[k], r_m2[k]
+        if k in ends:
             after = estimator.stats()
-    return _Run(mean, variance, r_m2, nis, gated,
+    return _Run(np.array(mean), np.array(variance), np.array(r_m2), np.array(nis),
+                np.array(gated, dtype=bool),
                 sum(after.resets.values()) - sum(before.resets.values()),
                 after.reacquisitions - before.reacquisitions)
 
