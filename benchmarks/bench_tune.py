@@ -7,8 +7,9 @@ time-correlated GNSS error, its reported variances, dropped epochs) of 30,000 fi
 defaults as the start and the hold-out on, in a child process (import and start-up
 included). The row reports the fit's time (the maximum-likelihood climb over the node's
 likelihood, numba when installed) and the whole command's (reading the bag, the fit,
-the node's two runs that score the held-out end), against issue 20's target: a
-30,000-fix rail log tuned in <= 30 s; and the fit's passes and stop.
+the node's two runs that score the held-out end, its rail IMM compiled when numba is
+installed, without KF_TRAIN_JIT: :mod:`kf_train.tune.validation`), against issue 20's
+target: a 30,000-fix rail log tuned in <= 30 s; and the fit's passes and stop.
 """
 
 import os

@@ -211,7 +211,7 @@ class _ParticleModel(PredictThenUpdate):
 
 def make_model(settings, preset: Union[Preset, RailPreset],
                particle_states: Optional[Dict[int, object]] = None,
-               fast: bool = True) -> StepModel:
+               fast: bool = True, jit: Optional[bool] = None) -> StepModel:
     """
     Return the filter's pure model: the preset's, plus white-noise acceleration q if set.
 
@@ -221,14 +221,14 @@ def make_model(settings, preset: Union[Preset, RailPreset],
     ``ukf`` its unscented transform, ``pf`` and ``bootstrap-pf`` a
     :class:`_ParticleModel` on it (keeping its particles in ``particle_states``). With
     ``fast``, the train's KF is :class:`_FastTrainModel`, its closed form, and the rail
-    IMM compiled if it can be (:func:`~kf_train.filters.rail_model`); without, the numpy
-    reference.
+    IMM compiled if ``jit`` (None: where KF_TRAIN_JIT=1 asks,
+    :func:`~kf_train.filters.rail_model`); without, the numpy references.
     """
     if isinstance(preset, RailPreset):
         # The IMM of four Kalman filters (settings allow only kf/ekf for it); its
         # states are kept with the particle filters' (both keyed by a mean's id).
-        # Compiled where numba is (kf_train.filters.rail_fast); ``fast`` False: numpy.
-        return IMMModel(preset.model(None if fast else False), preset.H, preset.R,
+        # Compiled as ``jit`` says (kf_train.filters.rail_fast); ``fast`` False: numpy.
+        return IMMModel(preset.model(jit if fast else False), preset.H, preset.R,
                         preset.state_names, states=particle_states)
     q = settings.process_noise_density
     if settings.preset == 'train':

@@ -155,12 +155,20 @@ class StreamEstimator:
     """Fuses stamped measurements (and controls): the rail preset by default."""
 
     fast_path = True
-    """Run the train's KF in closed form and the rail IMM compiled where it can be (see
+    """Run the train's KF in closed form and the rail IMM compiled as ``jit`` says (see
     :mod:`~kf_train.estimator.adapters`); False: the generic numpy references."""
 
-    def __init__(self, settings: EstimatorSettings = EstimatorSettings()):
-        """Validate ``settings``; the filter starts uninitialised."""
+    def __init__(self, settings: EstimatorSettings = EstimatorSettings(), *,
+                 jit: Optional[bool] = None):
+        """
+        Validate ``settings``; the filter starts uninitialised.
+
+        ``jit``: run the rail IMM compiled (True: numba must be installed) or numpy
+        (False); None (the node's, the replay's): as the KF_TRAIN_JIT variable says
+        (:func:`~kf_train.filters.rail_model`). Fixed for the estimator's life.
+        """
         self.settings: Optional[EstimatorSettings] = None
+        self._jit = jit
         # The particle filter's particles behind each kept mean (see adapters._ParticleModel).
         self._particle_states = {}
         self._fusion: Optional[Fusion] = None
@@ -169,7 +177,7 @@ class StreamEstimator:
     def _apply(self, settings: EstimatorSettings) -> None:
         """Install validated settings and everything derived from them."""
         config: Configuration = configure(settings, self.settings, self._particle_states,
-                                          self.fast_path)
+                                          self.fast_path, self._jit)
         # Everything is checked: install it.
         self._config = config
         self.settings, self.preset, self.model = settings, config.preset, config.model

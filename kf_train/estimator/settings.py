@@ -263,12 +263,14 @@ class Configuration(NamedTuple):
 
 
 def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings],
-              particle_states: Dict[int, object], fast: bool) -> Configuration:
+              particle_states: Dict[int, object], fast: bool,
+              jit: Optional[bool] = None) -> Configuration:
     """
     Return the configuration of validated ``settings``; raise ValueError, changing nothing.
 
     ``previous`` (the running estimator's settings, or None) must have the same
     preset and filter settings: those fix the filter for an estimator's life.
+    ``fast`` and ``jit`` choose the model's code path (:func:`make_model`).
     """
     if previous is not None:
         for name in ('preset',) + FILTER_SETTINGS:
@@ -277,7 +279,7 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
                 raise ValueError(f'{name} cannot change on a running estimator '
                                  f'({old!r} -> {new!r}); create a new one')
     preset = resolve_preset(settings.preset)
-    model = make_model(settings, preset, particle_states, fast)
+    model = make_model(settings, preset, particle_states, fast, jit)
     initial_state = as_vector('initial_state', preset.initial_state
                               if settings.initial_state is None
                               else settings.initial_state, preset.dim_x)

@@ -19,6 +19,8 @@ numba is the optional ``jit`` extra, and the compiled model is opt-in:
 :data:`JIT_VARIABLE` is ``1``, the reference otherwise (importing numba and loading the
 kernels costs a process ~0.9 s of start-up and ~125 MiB: docs/performance.md); either
 way live and replayed runs of one process take one path, so they stay equal to the bit.
+A caller may choose for itself (``jit``: ``kf-train tune``'s held-out scoring runs it
+whenever numba is installed, :mod:`kf_train.tune.validation`).
 The first use compiles the kernels (seconds) and caches them on disk (numba's
 ``cache=True``, beside the module or in numba's cache folder); a later process loads them
 (docs/performance.md). :meth:`FastRailModel.warm_up` does both at once (``make

@@ -10,6 +10,13 @@ Is a tuned setting better where it was not fitted? ``kf-train tune``'s hold-out 
   2-s predictions made in the held-out windows (the filter warm, as in reality)
   against the later fix (:mod:`kf_train.evaluate.later_fix`) and, where the segment
   has it, against the truth;
+* the node's rail IMM runs compiled there whenever numba is installed (as the fit's
+  likelihood does), without the node's opt-in (KF_TRAIN_JIT), numpy otherwise
+  (``jit``). The compiled model is the numpy reference's equations in numba loops, held
+  to it at a norm-wise relative 1e-9 over random regimes, rewinds and speed updates
+  (test/unit/test_rail_fast.py): the scores can differ from a numpy node run only at
+  rounding level, far below the report's digits and WORSE_TOLERANCE (a gate decision
+  flips only for a NIS within rounding of the threshold);
 * :func:`model_verdict` says in plain words when the innovations' NIS or whiteness
   (:func:`kf_train.batch.nis_consistency`) shows that the model does not describe
   the data, and names the likely cause.
@@ -25,7 +32,7 @@ from kf_train.batch import ConsistencyReport, Segment
 from kf_train.estimator import (
     EstimatorSettings, NS_PER_S, Rejected, resolve_preset, StreamEstimator)
 from kf_train.evaluate import later_fix, later_fix_score
-from kf_train.filters import MODE_NAMES, STATE_NAMES
+from kf_train.filters import MODE_NAMES, numba_available, STATE_NAMES
 from kf_train.presets import RailPreset
 from kf_train.ros import estimator_params
 from kf_train.sim import RAIL_WARMUP_S
@@ -168,35 +175,42 @@ class _Run(NamedTuple):
 
 
 def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
-                 window: Tuple[float, float]) -> _Run:
+                 window: Tuple[float, float], jit: bool) -> _Run:
     """Run one segment; keep each fix's 2-s prediction, count the events in ``window``."""
-    estimator = StreamEstimator(settings)
-    horizon_ns = round(estimator.horizon_s * NS_PER_S)
+    estimator = StreamEstimator(settings, jit=jit)
+    process, horizon_ns = estimator.process, round(estimator.horizon_s * NS_PER_S)
     N = s.t_s.shape[0]
-    mean, variance, nis = np.full(N, np.nan), np.full(N, np.nan), np.full(N, np.nan)
-    gated = np.zeros(N, dtype=bool)
-    r_m2 = np.array([estimator.measurement_variance(float(v)) for v in variances])
-    inside = (s.t_s >= window[0]) & (s.t_s < window[1])
+    # Plain floats and lists: the loop runs ~100k times a tune, numpy scalars cost there.
+    z, given = s.z[:, 0].tolist(), np.asarray(variances, dtype=float).tolist()
+    mean, variance, nis = [math.nan] * N, [math.nan] * N, [math.nan] * N
+    gated = [False] * N
+    r_m2 = [estimator.measurement_variance(v) for v in given]
+    inside = ((s.t_s >= window[0]) & (s.t_s < window[1])).tolist()
+    # The stats at the window's edges: its first fix (before it) and its last (after).
+    edges = [k for k in range(N) if inside[k] and (k == 0 or not inside[k - 1])]
+    ends = {k for k in range(N) if inside[k] and (k == N - 1 or not inside[k + 1])}
     before = after = estimator.stats()
     for k, stamp_ns in enumerate(_stamps_ns(s.t_s).tolist()):
-        if inside[k] and (k == 0 or not inside[k - 1]):
+        if edges and k == edges[0]:
             before = estimator.stats()
+            edges.pop(0)
         try:
-            step = estimator.process(stamp_ns, float(s.z[k, 0]), float(variances[k]))
+            step = process(stamp_ns, z[k], given[k])
         except Rejected as rejection:
             step, gated[k] = None, rejection.reason == 'outlier'
         if step is not None and step.prediction_stamp_ns - step.stamp_ns == horizon_ns:
-            mean[k], variance[k] = step.predicted_x[0], step.predicted_P[0, 0]
+            mean[k], variance[k] = step.predicted_x.item(0), step.predicted_P.item(0)
             if step.update is not None:
                 nis[k] = step.update.nis
         elif estimator.initialized:        # rejected: the newest state, predicted on
             x, P = estimator.predict_to(stamp_ns + horizon_ns)
-            mean[k], variance[k] = x[0], P[0, 0]
+            mean[k], variance[k] = x.item(0), P.item(0)
         else:      # reset by this fix, not restarted yet: the fix held where it is
-            mean[k], variance[k] = s.z[k, 0], r_m2[k]
-        if inside[k] and (k == N - 1 or not inside[k + 1]):
+            mean[k], variance[k] = z[k], r_m2[k]
+        if k in ends:
             after = estimator.stats()
-    return _Run(mean, variance, r_m2, nis, gated,
+    return _Run(np.array(mean), np.array(variance), np.array(r_m2), np.array(nis),
+                np.array(gated, dtype=bool),
                 sum(after.resets.values()) - sum(before.resets.values()),
                 after.reacquisitions - before.reacquisitions)
 
@@ -211,7 +225,7 @@ def _preset_path(preset: Union[RailPreset, str], directory: str) -> str:
     return path
 
 
-def _runs(preset, segments, windows, variances, measurement_variance, settings
+def _runs(preset, segments, windows, variances, measurement_variance, settings, jit
           ) -> Iterator[Tuple[Segment, np.ndarray, _Run]]:
     """Yield (segment, rows scored, run) of every segment with a window."""
     with tempfile.TemporaryDirectory(prefix='kf-train-tune-') as directory:
@@ -225,7 +239,7 @@ def _runs(preset, segments, windows, variances, measurement_variance, settings
                 continue
             rows = (variances[k] if variances is not None
                     else np.full(s.t_s.shape[0], default_r))
-            run = _run_segment(node, s, rows, window)
+            run = _run_segment(node, s, rows, window, jit)
             yield s, (s.t_s >= window[0]) & (s.t_s < window[1]), run
 
 
@@ -233,7 +247,8 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
                   windows: Optional[Sequence[Window]] = None,
                   variances: Optional[Sequence[np.ndarray]] = None,
                   measurement_variance: float = 0.0,
-                  settings: Optional[EstimatorSettings] = None) -> SettingScore:
+                  settings: Optional[EstimatorSettings] = None,
+                  jit: Optional[bool] = None) -> SettingScore:
     """
     Return the node's 2-s predictions in ``windows`` scored (see :class:`SettingScore`).
 
@@ -242,14 +257,16 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
     ``variances``: each segment's rows' variances (a bag's), else the preset's R;
     ``measurement_variance``: the node's override (0: the rows'); ``settings``: the
     estimator's (default: the node's defaults; its preset and measurement_variance are
-    these arguments'). The filter runs every segment from its first row; only
+    these arguments'); ``jit``: the rail IMM compiled (None: where numba is installed;
+    see the module docstring). The filter runs every segment from its first row; only
     predictions made in the window are scored.
     """
     windows = warm_windows(segments) if windows is None else windows
+    jit = numba_available() if jit is None else jit
     fixes, truth, nis = [], [], []
     gated = resets = reacquired = 0
     for s, scored, run in _runs(preset, segments, windows, variances, measurement_variance,
-                                settings):
+                                settings, jit):
         fixes.append(later_fix_score(s.t_s, s.z[:, 0], run.mean, run.variance, run.r_m2,
                                      scored))
         if s.truth is not None:

@@ -7,9 +7,10 @@ from kf_train.cli import main as kf_train_main
 from kf_train.cli.tune import main as tune_main
 from kf_train.estimator import Rejected, StreamEstimator
 from kf_train.evaluate import later_fix, later_fix_score, MAX_BRACKET_S
+from kf_train.filters import FastRailModel, JIT_VARIABLE, numba_available, RailModel
 from kf_train.presets import load_rail_preset, rail_preset_from_mapping
 from kf_train.sim.rail import rail_scenario
-from kf_train.tune import rail as tune_rail_module
+from kf_train.tune import rail as tune_rail_module, validation as validation_module
 from kf_train.tune.validation import (
     MIN_SPLIT_S, model_verdict, node_settings, rail_preset_yaml, score_setting,
     split_holdout)
@@ -70,8 +71,9 @@ def test_score_setting_is_the_node_estimator_run_by_hand():
     segment = Segment(scenario.t_s[:rows], z, None, scenario.truth[:rows])
     window = (40.0 + float(segment.t_s[0]), math.inf)
     found = score_setting('rail', [segment], [window])
-    # By hand: the node's defaults, stamps from 1 s, R = the preset's 1 m².
-    estimator = StreamEstimator(node_settings('rail'))
+    # By hand: the node's defaults, stamps from 1 s, R = the preset's 1 m², the IMM
+    # compiled where numba is (as the scoring runs it).
+    estimator = StreamEstimator(node_settings('rail'), jit=numba_available())
     t = segment.t_s
     stamps = 10 ** 9 + np.round((t - t[0]) * 1e9).astype(np.int64)
     mean, variance, nis, gated = np.zeros(rows), np.zeros(rows), [], 0
@@ -100,6 +102,52 @@ def test_score_setting_is_the_node_estimator_run_by_hand():
     assert found.resets == found.reacquisitions == 0
     # The same preset given as an object (written to a file the node reads) scores alike.
     assert score_setting(load_rail_preset(), [segment], [window]) == found
+
+
+def _metro_minute():
+    """Return 60 s of a simulated metro run at 10 Hz and its window after 40 s."""
+    scenario, _ = rail_scenario(seed=3, family='metro')
+    segment = Segment(scenario.t_s[:600], scenario.z[:600].copy(), None,
+                      scenario.truth[:600])
+    return segment, (40.0 + float(segment.t_s[0]), math.inf)
+
+
+@pytest.fixture()
+def models_run(monkeypatch):
+    """Return the list of the rail IMM classes the scoring's estimators run (no opt-in)."""
+    monkeypatch.delenv(JIT_VARIABLE, raising=False)
+    seen = []
+
+    class Recording(StreamEstimator):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            seen.append(type(self.model.imm))
+    monkeypatch.setattr(validation_module, 'StreamEstimator', Recording)
+    return seen
+
+
+def test_the_scoring_runs_the_compiled_rail_model_where_numba_is(models_run):
+    pytest.importorskip('numba')
+    segment, window = _metro_minute()
+    compiled = score_setting('rail', [segment], [window])
+    reference = score_setting('rail', [segment], [window], jit=False)
+    assert models_run == [FastRailModel, RailModel]
+    # The compiled model is the reference's to a norm-wise relative 1e-9 per step
+    # (test_rail_fast.py) on states of positions below ~1 km here: the predictions
+    # agree within ~1e-6 m, the RMSEs (~1 m) as closely; 1e-5 leaves a margin of 10.
+    assert compiled._replace(rmse_m=0.0, coverage=0.0, truth_rmse_m=0.0, mean_nis=0.0) == \
+        reference._replace(rmse_m=0.0, coverage=0.0, truth_rmse_m=0.0, mean_nis=0.0)
+    assert compiled.rmse_m == pytest.approx(reference.rmse_m, abs=1e-5)
+    assert compiled.truth_rmse_m == pytest.approx(reference.truth_rmse_m, abs=1e-5)
+    assert compiled.coverage == pytest.approx(reference.coverage, abs=1.0 / compiled.count)
+    assert compiled.mean_nis == pytest.approx(reference.mean_nis, rel=1e-5)
+
+
+def test_the_scoring_falls_back_to_numpy_without_numba(models_run, monkeypatch):
+    monkeypatch.setattr(validation_module, 'numba_available', lambda: False)
+    segment, window = _metro_minute()
+    score_setting('rail', [segment], [window])
+    assert models_run == [RailModel]
 
 
 def test_rail_preset_yaml_loads_back_to_the_same_preset():
