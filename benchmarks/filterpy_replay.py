@@ -5,8 +5,9 @@ The plain script a user would write with filterpy to replay a train log (the bas
 
 INPUT: a header, then t [s], z_position [m]. OUTPUT: t, position, velocity, their
 variances, the same predicted 2 s ahead, and the NIS of the fix (y S⁻¹ y, filterpy's
-``y`` and ``SI``): the 10 columns of ``kf-train replay --preset train``, from the same model (seed 000: F = [[1, dt], [0, 1]], Q = 0, R = 1,
-x0 = [0, 5], P0 = I, the prior holding at t = 0). ``make bench`` row 7 times it
+``y`` and ``SI``): the 10 columns of ``kf-train replay --preset train``, from the
+same model (seed 000: F = [[1, dt], [0, 1]], Q = 0, R = 1, x0 = [0, 5], P0 = I, the
+prior holding at t = 0). ``make bench`` row 7 times it
 against ``kf-train replay``, process start-up included.
 """
 
