@@ -190,16 +190,20 @@ class TrackFixes:
         """Return a fix on the track as drawn, re-measured from its far end."""
         return TrackFix(fix.tag, self.geometry.length_m - fix.x_m, fix.variance_m2, -fix.cross_m)
 
+    def _enqueue(self, queue: List[Any], item: Any) -> None:
+        """Hold an item in queue: past PENDING_MAX the oldest is dropped; both counted."""
+        queue.append(item)
+        if len(queue) > PENDING_MAX:
+            queue.pop(0)
+            self.counts.dropped_pending += 1
+        self.counts.pending = len(queue)
+
     def _hold(self, fix: TrackFix) -> List[TrackFix]:
         """Hold a fix until the direction is decided; then release every held one."""
         counts = self.counts
-        self._pending.append(fix)
-        if len(self._pending) > PENDING_MAX:
-            self._pending.pop(0)
-            counts.dropped_pending += 1
+        self._enqueue(self._pending, fix)
         run_m = held_run_m(np.array([f.x_m for f in self._pending]))
         if abs(run_m) < self.direction_min_m:
-            counts.pending = len(self._pending)
             return []
         counts.direction = 'forward' if run_m > 0.0 else 'reverse'
         released = self._pending if run_m > 0.0 else [self._reverse(f) for f in self._pending]

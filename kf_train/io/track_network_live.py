@@ -37,8 +37,7 @@ from typing import Any, List, NamedTuple, Optional, Tuple
 from kf_train.io.track import (
     polyline_arc_lengths_m, polyline_tangents, project_onto_polyline)
 from kf_train.io.track_fixes import (
-    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, DIRECTION_MIN_M, held_run_m, PENDING_MAX, TrackFix,
-    TrackFixes)
+    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, DIRECTION_MIN_M, held_run_m, TrackFix, TrackFixes)
 from kf_train.io.track_network import emission, MATCH_CAP_M, TrackNetwork
 import numpy as np
 
@@ -138,11 +137,13 @@ class NetworkFixes(TrackFixes):
         return self._gated(tag, x0_m + float(along_m[0]), float(cross_m[0]), tangent[0],
                            covariance_en_m2)
 
-    def _publish(self, back: np.ndarray) -> int:
+    def _publish(self, lineage: Optional[np.ndarray] = None) -> int:
         """Return the state to publish: the published one's best heir, unless beaten by more."""
+        # lineage: each state's predecessor at this fix (the Viterbi step's back pointers);
+        # None at the start, where no state has one: the best state is published.
         best = int(np.argmax(self._score))
-        if self._published is not None:
-            heirs = np.flatnonzero(back == self._published)
+        if self._published is not None and lineage is not None:
+            heirs = np.flatnonzero(lineage == self._published)
             if heirs.size:
                 heir = int(heirs[np.argmax(self._score[heirs])])
                 if self._score[best] - self._score[heir] <= self.switch_margin:
@@ -153,20 +154,16 @@ class NetworkFixes(TrackFixes):
     def _hold_held(self, held: _Held) -> List[TrackFix]:
         """Hold a fix until the direction is decided; then release the held ones on the path."""
         counts = self.counts
-        self._held.append(held)
-        if len(self._held) > PENDING_MAX:
-            self._held.pop(0)
-            counts.dropped_pending += 1
+        self._enqueue(self._held, held)
         points_m = np.concatenate([h.points_m for h in self._held])
         best = int(np.argmax(self._score))
         if abs(self._run_m(best // 2, points_m)) < self.direction_min_m:
-            counts.pending = len(self._held)
             return []
         for e in range(len(self._vertices_m)):
             run_m = self._run_m(e, points_m)
             if abs(run_m) >= self.direction_min_m:
                 self._score[2 * e + (1 if run_m > 0.0 else 0)] = -np.inf
-        state = self._publish(np.full(self._score.size, -1))
+        state = self._publish(lineage=None)
         chain = []
         for h in reversed(self._held):
             chain.append(state)
