@@ -185,15 +185,14 @@ def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
     mean, variance, nis = [math.nan] * N, [math.nan] * N, [math.nan] * N
     gated = [False] * N
     r_m2 = [estimator.measurement_variance(v) for v in given]
-    inside = ((s.t_s >= window[0]) & (s.t_s < window[1])).tolist()
-    # The stats at the window's edges: its first fix (before it) and its last (after).
-    edges = [k for k in range(N) if inside[k] and (k == 0 or not inside[k - 1])]
-    ends = {k for k in range(N) if inside[k] and (k == N - 1 or not inside[k + 1])}
+    # The stats at the window's edges: before its first fix and after its last (the times
+    # increase, so its fixes are one run; without any, N: never reached, no events).
+    in_window = np.flatnonzero((s.t_s >= window[0]) & (s.t_s < window[1])).tolist()
+    first, last = (in_window[0], in_window[-1]) if in_window else (N, N)
     before = after = estimator.stats()
     for k, stamp_ns in enumerate(_stamps_ns(s.t_s).tolist()):
-        if edges and k == edges[0]:
+        if k == first:
             before = estimator.stats()
-            edges.pop(0)
         try:
             step = process(stamp_ns, z[k], given[k])
         except Rejected as rejection:
@@ -207,7 +206,7 @@ def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
             mean[k], variance[k] = x.item(0), P.item(0)
         else:      # reset by this fix, not restarted yet: the fix held where it is
             mean[k], variance[k] = z[k], r_m2[k]
-        if k in ends:
+        if k == last:
             after = estimator.stats()
     return _Run(np.array(mean), np.array(variance), np.array(r_m2), np.array(nis),
                 np.array(gated, dtype=bool),
