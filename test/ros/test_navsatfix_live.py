@@ -137,18 +137,24 @@ def replay_fix_outputs(tmp_path, fixes, track, overrides):
     return outputs
 
 
-def test_navsatfix_live_and_bag_replay_are_bit_equal(ros_context, executor, tmp_path):
-    """The same fixes live and from a bag: the same estimates, predictions, innovations."""
-    track = write_track(tmp_path / 'track.geojson')
+def live_and_replayed(context, executor, tmp_path, track):
+    """Send the fixes live and from a bag on a track or network file; assert bit-equal."""
     fixes = fix_sequence(time.time_ns() - 60 * NS)
-    node, live = live_fix_outputs(ros_context, executor, fixes, {
+    node, live = live_fix_outputs(context, executor, fixes, {
         'measurement_type': 'navsatfix', 'track': str(track), 'history_s': 5.0})
-    assert node.session.track.fixes.counts.off_track == 1
     replayed = replay_fix_outputs(tmp_path, fixes, track, ['history_s:=5.0'])
     for topic, numbers in (('estimate', odometry_numbers), ('prediction', odometry_numbers),
                            ('innovation', vector_numbers)):
         assert len(live[topic]) == len(replayed[topic]) > 50, topic
         assert [numbers(m) for m in live[topic]] == [numbers(m) for m in replayed[topic]]
+    return fixes, node, live
+
+
+def test_navsatfix_live_and_bag_replay_are_bit_equal(ros_context, executor, tmp_path):
+    """The same fixes live and from a bag: the same estimates, predictions, innovations."""
+    track = write_track(tmp_path / 'track.geojson')
+    _, node, _ = live_and_replayed(ros_context, executor, tmp_path, track)
+    assert node.session.track.fixes.counts.off_track == 1
 
 
 def write_network(path, switch_m=150.0):
@@ -167,9 +173,7 @@ def write_network(path, switch_m=150.0):
 def test_navsatfix_on_a_network_live_and_replayed(ros_context, executor, tmp_path):
     """A network: the path chosen live, through the switch onto B; bit-equal from a bag."""
     network = write_network(tmp_path / 'network.geojson')
-    fixes = fix_sequence(time.time_ns() - 60 * NS)
-    node, live = live_fix_outputs(ros_context, executor, fixes, {
-        'measurement_type': 'navsatfix', 'track': str(network), 'history_s': 5.0})
+    fixes, node, live = live_and_replayed(ros_context, executor, tmp_path, network)
     counts = node.session.track.fixes.counts
     assert counts.no_fix == 1 and counts.off_track == 1
     assert counts.fused == len(fixes) - 2 == node.session.received
@@ -180,8 +184,3 @@ def test_navsatfix_on_a_network_live_and_replayed(ros_context, executor, tmp_pat
     t_s = np.array([messages.stamp_to_ns(m.header.stamp) - messages.stamp_to_ns(
         fixes[0].header.stamp) for m in live['estimate']]) / NS
     assert np.all(np.abs(x - SPEED_MPS * t_s)[10:] < 5.0)
-    replayed = replay_fix_outputs(tmp_path, fixes, network, ['history_s:=5.0'])
-    for topic, numbers in (('estimate', odometry_numbers), ('prediction', odometry_numbers),
-                           ('innovation', vector_numbers)):
-        assert len(live[topic]) == len(replayed[topic]) > 50, topic
-        assert [numbers(m) for m in live[topic]] == [numbers(m) for m in replayed[topic]]
