@@ -11,9 +11,10 @@ ring), this script
 2. replays B's bag through the node's session twice, with the defaults and with
    PARAMS.yaml (``kf-train replay B.mcap --params-file``), and scores the 2-s prediction
    against the fix 2 s later (benchmarks/real_logs.py's scoring, from 10 s on);
-3. prints one row per pair: the tuned noises, the fit's passes and time, whether tune
-   kept the defaults or refused (held-out worse), the RMSE on B before and after, and
-   whether the tuned file made B worse (the target: never).
+3. prints one row per pair: the tuned noises, the lag-1 autocorrelation of A's
+   innovations (start → tuned), the fit's time, whether tune kept the defaults or
+   refused (held-out worse), the RMSE on B before and after, and whether the tuned file
+   made B worse (the target: never).
 
 ``--starts`` also tunes the first ``--starts`` logs from three starts (the defaults,
 the defaults' noises ×100 and /100 as a --config preset file) and prints whether
@@ -42,6 +43,7 @@ import real_logs  # noqa: E402
 import yaml  # noqa: E402
 
 ESTIMATE = re.compile(r'^\s+(q_a|q_l|q_c|R)\s+\S+\s+\[[^\]]*\]\s+(\S+)', re.MULTILINE)
+LAG1 = re.compile(r'^lag-1 autocorrelation .*: before (\S+), after (\S+)$', re.MULTILINE)
 
 
 def tune(bag: Path, output: Path, extra: List[str] = ()) -> Tuple[int, str, float]:
@@ -109,11 +111,13 @@ def main() -> int:
             code, report, seconds = tune(bags[a], params)
             written = params.exists()
             found = estimates(report)
+            lag1 = LAG1.search(report)
             before = judged(*data[b], bags[b], [])
             after = judged(*data[b], bags[b], [str(params)]) if written else before
             verdict = 'no file' if not written else (
                 'worse' if after[0] > before[0] else 'not worse')
-            rows.append((a, b, found.get('q_a', '-'), found.get('q_l', '-'), f'{seconds:.1f}',
+            rows.append((a, b, found.get('q_a', '-'), found.get('q_l', '-'),
+                         f'{lag1.group(1)} → {lag1.group(2)}' if lag1 else '-', f'{seconds:.1f}',
                          'written' if written else f'not written (exit {code})',
                          f'{before[0]:.3f}', f'{after[0]:.3f}',
                          f'{100 * before[1]:.1f} → {100 * after[1]:.1f} %', verdict))
@@ -128,8 +132,8 @@ def main() -> int:
                 agree.append((a, *cells, 'yes' if same else 'NO'))
     print('\nTuned on A (kf-train tune A.mcap, defaults as the start), replayed on B; '
           '2-s RMSE [m] against the fix 2 s later\n')
-    print(format_table(('A', 'B', 'q_a', 'q_l', 'tune [s]', 'params file', 'B defaults',
-                        'B tuned', 'B 2σ coverage', 'B'), rows))
+    print(format_table(('A', 'B', 'q_a', 'q_l', 'lag-1 on A', 'tune [s]', 'params file',
+                        'B defaults', 'B tuned', 'B 2σ coverage', 'B'), rows))
     if agree:
         print('\nThree starts (the defaults, noises ×100, /100): the same answer?\n')
         print(format_table(('log', 'defaults', '×100', '/100', 'same'), agree))

@@ -112,3 +112,47 @@ def test_two_noises_only_their_sum_is_identified_are_said_so():
     for estimate in fit.estimates:
         assert not estimate.identified
         assert 'only their combination is identified' in estimate.reason
+
+
+def _counted(objective):
+    """Return (objective, the list of its batch sizes)."""
+    sizes = []
+
+    def counted(points):
+        sizes.append(points.shape[0])
+        return objective(points)
+    return counted, sizes
+
+
+def test_a_noise_headed_for_zero_reaches_the_floor_in_a_few_passes():
+    """ℓ = ℓ(0) − aθ₂ near 0 plus a quadratic in log θ₁: held on the floor, not crawled to."""
+    low, high = np.full(2, -14.0 * math.log(10.0)), np.full(2, 2.0 * math.log(10.0))
+
+    def objective(points):
+        return (-0.5 * ((points[:, 0] - math.log(3e-2)) / 0.1) ** 2
+                - 5e4 * np.exp(points[:, 1]))
+    counted, sizes = _counted(objective)
+    start = np.log([1e-2, 1e-5])
+    result = climb(counted, start, low, high)
+    # one e-fold a Newton step: 20 steps (40 passes) to 1e-14; the ladder needs a few
+    assert result.passes == len(sizes) <= 10
+    assert result.stop.startswith('converged')
+    assert result.vector[0] == pytest.approx(math.log(3e-2), abs=1e-3)
+    # on a rung 8 decades down or on the floor: 5e4 θ₂ below 1e-7 either way
+    assert 5e4 * math.exp(result.vector[1]) < 1e-7
+    assert result.log_likelihood >= float(objective(start[None])[0])
+
+
+def test_the_ladder_meets_an_interior_maximum_below_instead_of_jumping_to_zero():
+    """ℓ = −B(√(θ/p) − 1)²: ℓ(0) > ℓ(start), the maximum 2 decades down; a rung finds it."""
+    low, high = np.full(1, -14.0 * math.log(10.0)), np.full(1, 2.0 * math.log(10.0))
+    peak = 1e-7
+
+    def objective(points):
+        return -0.01 * (np.exp(0.5 * (points[:, 0] - math.log(peak))) - 1.0) ** 2
+    start = np.log([1e-5])
+    # ℓ(start) = −0.81 < ℓ(0) = −0.01 < ℓ(peak) = 0, and on the floor ℓ is flat (3e-6):
+    # a jump to 0 alone would stay there
+    assert objective(start[None])[0] < objective(low[None])[0] < objective(np.log([[peak]]))[0]
+    result = climb(objective, start, low, high)
+    assert result.vector[0] == pytest.approx(math.log(peak), abs=1e-2)
