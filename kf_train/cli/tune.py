@@ -38,8 +38,10 @@ the rail preset, the rows' own variances are used, as the node uses them).
 For the rail preset, the last 25 % of each segment is held out (``--holdout``): the
 fit never sees it, and the start and the tuned setting are both run there by the node's
 own estimator (:mod:`kf_train.tune.validation`); a tuned setting that predicts worse
-or no better there (or on ``--validate INPUT``) is not written (the report says 'kept
-the start', exit code 0) unless ``--force``. The linear presets tune on all the data.
+or no better there (or on ``--validate INPUT``), or whose own innovations' mean NIS is
+off 1 by more than 10× and further than the start's, is not written (the report says
+'kept the start', exit code 0) unless ``--force``. The linear presets tune on all the
+data.
 Bad input is reported in one line (file, line or row, column; the bag and its topic)
 with exit code 1.
 """
@@ -165,7 +167,8 @@ def add_rail_arguments(parser) -> None:
     parser.add_argument('--force', action='store_true',
                         help='rail preset only: write the tuned setting even when it '
                              'predicts worse or no better than the start on the '
-                             'held-out part or on --validate (without it nothing is '
+                             'held-out part or on --validate, or its mean NIS is off '
+                             'by more than 10x (without it nothing is '
                              "written, exit code 0, and the report says 'kept the start: "
                              "...')")
 

@@ -38,9 +38,9 @@ from kf_train.tune.inputs import reader_for, TopicOptions, TuneInput
 from kf_train.tune.linear import carried_variances, params_yaml, TuneOptions
 from kf_train.tune.rail_fit import fit_rail_noise, MIN_GAIN, RailFit
 from kf_train.tune.validation import (
-    Comparison, comparison_lines, Holdout, MIN_SPLIT_S, model_verdict, node_settings,
-    score_setting, segment_variances, split_holdout, training_input, warm_windows,
-    worse_reason)
+    Comparison, comparison_lines, Holdout, inconsistent_reason, MIN_SPLIT_S, model_verdict,
+    node_settings, score_setting, segment_variances, split_holdout, training_input,
+    warm_windows, worse_reason)
 import numpy as np
 
 CHECK_CONFIDENCE = 0.99
@@ -132,9 +132,8 @@ def _consistency(run, k: int):
                            CHECK_CONFIDENCE)
 
 
-def _check_lines(run) -> List[str]:
-    """Return ℓ, the NIS and whiteness lines of the node's run of [start, tuned]."""
-    b, a = _consistency(run, 0), _consistency(run, 1)
+def _check_lines(run, b, a) -> List[str]:
+    """Return ℓ, the NIS and whiteness lines of the node's run of [start, tuned]: b, a."""
     ll = run.log_likelihood
     lines = [f'log-likelihood: before {ll[0]:.2f}, after {ll[1]:.2f}',
              f'NIS, mean of {a.count} mixture innovations the node fused ({CHECK_CONFIDENCE:.0%}'
@@ -236,6 +235,7 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
     run = rail_log_likelihoods(base, segments, [before, fit.setting], variances=variances,
                                adaptation=base.adaptation(), gate_threshold=gate,
                                innovations=True)
+    checks = _consistency(run, 0), _consistency(run, 1)
     params = {'preset': os.path.abspath(preset_output)}
     if r_written:
         params['measurement_variance'] = float(fit.setting.measurement_variance)
@@ -244,12 +244,13 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
          f'({len(segments)} object{"s" * (len(segments) != 1)}), {rows} innovations, '
          'initialization first_measurement']
         + [f'input: {line}' for line in notes] + _fit_lines(fit, args.confidence)
-        + _check_lines(run))
+        + _check_lines(run, *checks))
     # The messages' R stays theirs: the preset file keeps its own R then.
     written = fit.setting if r_written else fit.setting._replace(measurement_variance=None)
     tuned = (preset._replace(parameters=written.parameters(base)),
              params.get('measurement_variance', 0.0))
-    lines, refused = _validation(args, preset, tuned, (full, holdout), other)
+    lines, refused = _validation(args, preset, tuned, (full, holdout), other,
+                                 inconsistent_reason(*checks))
     text = '\n'.join([text] + lines)
     if refused:
         return text + f'\nkept the start: {refused}; nothing written (--force writes it)'
@@ -260,14 +261,15 @@ def tune_rail(args: TuneOptions, preset: RailPreset, noises: List[str], spec_lab
 
 
 def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple,
-                held_out: Tuple[TuneInput, Holdout], other: Optional[TuneInput]
-                ) -> Tuple[List[str], Optional[str]]:
+                held_out: Tuple[TuneInput, Holdout], other: Optional[TuneInput],
+                inconsistent: Optional[str] = None) -> Tuple[List[str], Optional[str]]:
     """
     Return (the report's validation lines, why the tuned setting is refused or None).
 
     The start is the node untuned (the preset, the rows' own variances); the tuned
     setting is what the written files make the node run. Both are scored on the
     held-out windows and on ``--validate``'s input (whole, after the warm-up).
+    ``inconsistent``: why the fit's own innovations refuse it (inconsistent_reason).
     """
     comparisons, lines = [], []
     full, holdout = held_out
@@ -284,7 +286,7 @@ def _validation(args: TuneOptions, preset: RailPreset, tuned: tuple,
                                     warm_windows(other.segments)))
     for comparison in comparisons:
         lines += comparison_lines(comparison)
-    reasons = [r for r in map(worse_reason, comparisons) if r]
+    reasons = [r for r in [inconsistent, *map(worse_reason, comparisons)] if r]
     if reasons and args.force:
         lines.append(f'--force: written although {reasons[0]}')
     return lines, None if args.force or not reasons else reasons[0]

@@ -49,6 +49,10 @@ Window = Optional[Tuple[float, float]]
 """The times [start, end) [s] whose predictions are scored; None: none of the segment's."""
 WORSE_TOLERANCE = 2e-3
 """RMSEs within this share (0.2 %, below the report's 3 digits) are a tie (the start kept)."""
+NIS_FACTOR = 10.0
+"""A tuned model whose mean NIS is off by more than this factor (its 2σ band √10 ≈ 3.2×
+too wide or too narrow), and further off than the start's, is refused: see
+:func:`inconsistent_reason`."""
 
 
 class Holdout(NamedTuple):
@@ -344,6 +348,31 @@ def worse_reason(comparison: Comparison) -> Optional[str]:
         return (f'on {comparison.label} the tuned setting locks out more often '
                 f'({a.resets + a.reacquisitions} against {b.resets + b.reacquisitions})')
     return None
+
+
+def inconsistent_reason(before: ConsistencyReport, after: ConsistencyReport) -> Optional[str]:
+    """
+    Return why the tuned model is refused for its own innovations, or None.
+
+    Refused: its mean NIS is off 1 by more than NIS_FACTOR and further off than the
+    start's (the tune made the model less consistent with the data it was fitted on).
+    Such a fit has used the noises for something other than the innovations' size: on
+    tp-lib's clean logs, whose receiver smooths its output, the likelihood raised q_ℓ
+    500-1500× to follow the receiver's slow error as motion (mean NIS 0.27 -> 0.048 and
+    0.15 -> 0.016), and on held-out parts of the same log that won; the tuned files then
+    made dirty logs worse (docs/rail.md, "Real logs, tuned on one and judged on another").
+    """
+    def off(report):
+        return abs(math.log(report.mean_nis)) if report.mean_nis > 0.0 else math.inf
+    if off(after) <= math.log(NIS_FACTOR) or off(after) <= off(before):
+        return None
+    side = 'larger' if after.mean_nis < 1.0 else 'smaller'
+    return (f'the tuned model is inconsistent with its own innovations (mean NIS '
+            f'{after.mean_nis:.3g}, {before.mean_nis:.3g} before; off by more than '
+            f'{NIS_FACTOR:g}×): its bands would be over {math.sqrt(NIS_FACTOR):.1f}× {side} '
+            'than the errors; the noises were fitted to something other than the '
+            "innovations' size (e.g. a smoothing receiver's slow error read as motion), "
+            'and such noises made other logs worse')
 
 
 def model_verdict(report: ConsistencyReport) -> List[str]:

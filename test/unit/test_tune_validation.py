@@ -12,8 +12,8 @@ from kf_train.presets import load_rail_preset, rail_preset_from_mapping
 from kf_train.sim.rail import rail_scenario
 from kf_train.tune import rail as tune_rail_module, validation as validation_module
 from kf_train.tune.validation import (
-    MIN_SPLIT_S, model_verdict, node_settings, rail_preset_yaml, score_setting,
-    split_holdout)
+    inconsistent_reason, MIN_SPLIT_S, model_verdict, NIS_FACTOR, node_settings,
+    rail_preset_yaml, score_setting, split_holdout)
 import numpy as np
 import pytest
 import yaml
@@ -238,3 +238,31 @@ def test_the_verdict_says_which_way_the_noise_is_wrong():
         'the noise is set larger than the data show')
     assert model_verdict(_report(white, 2.0))[-1].endswith(
         'the noise is set smaller than the data show')
+
+
+def test_a_tuned_model_far_less_consistent_than_its_start_is_refused():
+    """Mean NIS off 1 by more than NIS_FACTOR and further off than the start's: refused."""
+    white = np.random.default_rng(22).standard_normal(20000)
+    # the mean NIS of e·c is c² (to ~1 % at 20,000 innovations)
+    before, far_below, near_below = (_report(white, c) for c in (0.5, 0.2, 0.4))
+    reason = inconsistent_reason(before, far_below)            # 0.25 -> 0.04
+    assert reason.startswith('the tuned model is inconsistent with its own innovations '
+                             '(mean NIS 0.0')
+    assert f'{math.sqrt(NIS_FACTOR):.1f}× larger than the errors' in reason
+    assert inconsistent_reason(before, near_below) is None     # 0.16: within 10×
+    assert inconsistent_reason(far_below, _report(white, 0.25)) is None   # nearer 1
+    assert 'smaller than the errors' in inconsistent_reason(_report(white), _report(white, 4.0))
+    assert inconsistent_reason(_report(white), _report(white)) is None
+
+
+def test_an_inconsistent_tuned_model_is_not_written_unless_forced(short_run, monkeypatch,
+                                                                  capsys):
+    monkeypatch.setattr(tune_rail_module, 'inconsistent_reason',
+                        lambda before, after: 'STUB: inconsistent')
+    output = short_run / 'inconsistent.yaml'
+    assert tune_main([str(short_run / 'run.csv'), '-o', str(output)]) == 0
+    assert 'kept the start: STUB: inconsistent; nothing written' in capsys.readouterr().out
+    assert not output.exists()
+    assert tune_main([str(short_run / 'run.csv'), '-o', str(output), '--force']) == 0
+    assert '--force: written although STUB: inconsistent' in capsys.readouterr().out
+    assert output.exists()
