@@ -268,13 +268,13 @@ def climb(objective: Objective, start: np.ndarray, low: np.ndarray, high: np.nda
         if steps >= MAX_STEPS:
             break
         free_g, free_H = _free(g, H, _held(vector, g, low, high))
-        gain = 0.5 * float(free_g @ newton_direction(free_g, free_H))   # the model's gain
+        full = newton_direction(free_g, free_H)           # the unclipped Newton step
+        gain = 0.5 * float(free_g @ full)                 # the quadratic model's gain
         if gain < GAIN_TOL and (last_step < STEP_TOL or _concave(free_H)):
             stop = 'converged'
             break
         improved = False
         tries = 0
-        full = newton_direction(free_g, free_H)
         while radius >= STEP_TOL and not improved:
             steps_tried = _candidates(free_g, free_H, radius, axes=tries > 0)
             steps_tried += _ladder(vector, steps_tried[0], full, low)
