@@ -30,14 +30,22 @@ step keeps, for each state, the score of the best chain of states ending in it.
   held fixes are released on the best chain, traced back. From then on x grows with
   the travel, the direction being part of the state. A train that reverses is not
   followed (no state turns back).
+* **Cost.** A fix is measured only on the segments near it
+  (:meth:`TrackNetwork.segments_near`: every one within NEAR_M, the cap of
+  :func:`emission`); an element with none of them scores the cap, as when measured,
+  and a fix farther than the gate can reach from every element it could be measured
+  on is rejected unmeasured. While the direction is open, only the held fixes the run
+  reads are projected (:func:`kf_train.io.track_fixes.held_run_ends`). All of it
+  gives the same numbers to the bit as measuring every fix on every segment.
 """
 
 from typing import Any, List, NamedTuple, Optional, Tuple
 
 from kf_train.io.track import (
-    polyline_segments, polyline_tangents, project_onto_polyline, project_onto_segments)
+    polyline_segments, polyline_tangents, project_onto_segments)
 from kf_train.io.track_fixes import (
-    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, DIRECTION_MIN_M, held_run_m, TrackFix, TrackFixes)
+    CROSS_TRACK_MAX_M, CROSS_TRACK_SIGMAS, DIRECTION_MIN_M, ends_run_m, held_run_ends, TrackFix,
+    TrackFixes)
 from kf_train.io.track_network import emission, MATCH_CAP_M, NEAR_M, TrackNetwork
 import numpy as np
 
@@ -197,7 +205,10 @@ class NetworkFixes(TrackFixes):
         """Hold a fix until the direction is decided; then release the held ones on the path."""
         counts = self.counts
         self._enqueue(self._held, held)
-        points_m = np.concatenate([h.points_m for h in self._held])
+        # Only the fixes the run reads are projected (a point's s does not depend on the
+        # others projected with it): the held ones cost the same a fix however many.
+        points_m = np.concatenate([self._held[k].points_m
+                                   for k in held_run_ends(len(self._held))])
         best = int(np.argmax(self._score))
         if abs(self._run_m(best // 2, points_m)) < self.direction_min_m:
             return []
@@ -218,6 +229,6 @@ class NetworkFixes(TrackFixes):
         counts.fused += len(released)
         return released
 
-    def _run_m(self, e: int, points_m: np.ndarray) -> float:
-        """Return how far the points ran along element e as drawn (held_run_m)."""
-        return held_run_m(project_onto_polyline(points_m, self._vertices_m[e])[0])
+    def _run_m(self, e: int, ends_m: np.ndarray) -> float:
+        """Return how far the held fixes ran along element e as drawn (ends_m: held_run_ends')."""
+        return ends_run_m(project_onto_segments(ends_m, self._segments[e])[0])
