@@ -184,7 +184,8 @@ class NetworkFixes(TrackFixes):
         if covariance_en_m2 is None:
             variance_m2 = self.variance_m2
         else:       # uᵀCu <= the sum of |C|'s entries, for every unit u
-            variance_m2 = float(np.abs(np.asarray(covariance_en_m2, dtype=float)).sum())
+            cov = np.asarray(covariance_en_m2, dtype=float).reshape(2, 2)     # as _gated
+            variance_m2 = float(np.abs(cov).sum())
         return self.cross_track_bound_m(variance_m2) < NEAR_M
 
     def _publish(self, lineage: Optional[np.ndarray] = None) -> int:
