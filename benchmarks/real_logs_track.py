@@ -20,7 +20,7 @@ gate, the direction of travel decided by the node). Per log it reports
 * with ``--reverse``, the same with the track file drawn against the travel.
 
     PYTHONPATH=. python benchmarks/real_logs_track.py [--logs 29083,...] [--cache DIR]
-        [-p NAME:=VALUE ...] [--reverse] [--network [--live]]
+        [-p NAME:=VALUE ...] [--reverse] [--network [--live | --cost [--rounds N]]]
 
 ``--network`` instead chooses each log's path on tp-lib's ``network_airport.geojson``
 from its fixes (:mod:`kf_train.io.track_network`, offline map matching) and compares it
@@ -30,17 +30,25 @@ network itself (the path chosen live, fix by fix: :mod:`kf_train.io.track_networ
 each scored against the later fix it released (its own x), with the elements run, the
 fixes the gate rejected and the lock-outs (resets and re-acquisitions).
 
+``--network --cost`` times the projection alone, without the node: per log, µs a fix
+of NetworkFixes on the network and of TrackFixes on the path chosen offline as one
+track (the median of ``--rounds`` runs, the two in turn), with a digest of all each
+published (every x, variance and cross-track distance to the bit, the element after
+each fix, the counts): equal digests, equal outputs. Run it with another checkout
+first on PYTHONPATH to compare two versions.
+
 The data are real_logs.py's (its cache, ``--data`` or ``$KF_TRAIN_TPLIB_DATA``; tp-lib,
 Apache-2.0, is not in this repository). Needs pyproj and rosbags. Figures only.
 """
 
 import argparse
+import hashlib
 import json
 from pathlib import Path
 import shutil
 import sys
 import time
-from typing import Dict, List
+from typing import Dict, List, Tuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -267,6 +275,41 @@ def network_replays(data: Path, logs: dict, cache: Path, args: argparse.Namespac
                         'RMSE all [m]', 'RMSE good [m]', '2σ cov.'), rows))
 
 
+def _published(fixes, lat: np.ndarray, lon: np.ndarray) -> Tuple[float, str]:
+    """Return (s a fix, digest of what was published) of one run of fixes over a log."""
+    digest = hashlib.sha256()
+    start = time.perf_counter()
+    for k in range(lat.size):
+        out = fixes.add(k, lat[k], lon[k])
+        digest.update(repr([(f.tag, f.x_m.hex(), f.variance_m2.hex(), f.cross_m.hex())
+                            for f in out] + [getattr(fixes, 'element', None)]).encode())
+    elapsed_s = time.perf_counter() - start
+    digest.update(repr(fixes.counts).encode())
+    return elapsed_s / lat.size, digest.hexdigest()[:12]
+
+
+def network_cost(data: Path, logs: dict, rounds: int) -> None:
+    """Print, per log, µs a fix of the path chosen live and of one track, and their digests."""
+    from kf_train.io import NetworkFixes, TrackFixes, TrackGeometry, TrackNetwork
+    from kf_train.ros.track_input import FIX_VARIANCE_M2
+    network = TrackNetwork.from_file(data / 'network_airport.geojson')
+    rows = []
+    for name, files in logs.items():
+        fixes = fixes_in_order(files[0])
+        lat, lon = fixes['lat'], fixes['lon']
+        track = TrackGeometry(network.path_lonlat(network.match(lat, lon)))
+        runs = {'network': [], 'track': []}
+        for _ in range(rounds):         # the two in turn: the machine's drift hits both
+            runs['network'].append(_published(NetworkFixes(network, FIX_VARIANCE_M2), lat, lon))
+            runs['track'].append(_published(TrackFixes(track, FIX_VARIANCE_M2), lat, lon))
+        assert all(len({d for _, d in r}) == 1 for r in runs.values()), 'runs disagree'
+        rows.append((name, lat.size) + tuple(
+            x for r in runs.values() for x in (f'{1e6 * np.median([s for s, _ in r]):.0f}',
+                                               r[0][1])))
+    print(format_table(('log', 'fixes', 'network [µs/fix]', 'network digest',
+                        'one track [µs/fix]', 'track digest'), rows))
+
+
 def print_table(results: List[dict], labels) -> None:
     """Print one row per log and mode."""
     rows = []
@@ -310,6 +353,10 @@ def main() -> int:
     parser.add_argument('--live', action='store_true',
                         help='with --network: replay each log on the path chosen offline and '
                              'on the network, the path chosen live, and compare')
+    parser.add_argument('--cost', action='store_true',
+                        help='with --network: µs a fix of the path chosen live and of one '
+                             'track, without the node, and digests of their outputs')
+    parser.add_argument('--rounds', type=int, default=5, help='runs per log with --cost')
     args = parser.parse_args()
     cache = Path(args.cache).expanduser()
     data = real_logs.data_dir(args, cache)
@@ -319,7 +366,9 @@ def main() -> int:
         logs = {k: v for k, v in logs.items() if k in wanted}
     if args.network:
         data = data if (data / 'network_airport.geojson').exists() else data / 'test-data'
-        if args.live:
+        if args.cost:
+            network_cost(data, logs, args.rounds)
+        elif args.live:
             network_replays(data, logs, cache, args)
         else:
             network_paths(data, logs)

@@ -12,7 +12,7 @@ not by the nearest copy. Pure numpy; no map matching (which track a train took i
 caller's business).
 """
 
-from typing import Tuple, Union
+from typing import NamedTuple, Tuple, Union
 
 import numpy as np
 
@@ -44,6 +44,43 @@ def _window(bound: ArrayOrFloat, count: int, fill: float) -> np.ndarray:
     return np.broadcast_to(np.asarray(bound, dtype=float), (count,))
 
 
+class Segments(NamedTuple):
+    """A polyline's segments (its distinct vertices), as project_onto_polyline takes them."""
+
+    start: np.ndarray
+    """(M, 2) first vertex of each segment [m]."""
+    step: np.ndarray
+    """(M, 2) from its first vertex to its last [m]."""
+    length: np.ndarray
+    """(M,) [m]."""
+    unit: np.ndarray
+    """(M, 2) step / length."""
+    arc: np.ndarray
+    """(M + 1,) arc length at each vertex [m]."""
+
+
+def polyline_segments(vertices_m: np.ndarray) -> Segments:
+    """Return the segments of a polyline (M, 2), repeated vertices dropped."""
+    vertices = np.asarray(vertices_m, dtype=float)
+    if vertices.ndim != 2 or vertices.shape[1] != 2:
+        raise ValueError(f'vertices must be (M, 2), got {vertices.shape}')
+    keep = np.concatenate(([True], np.any(np.diff(vertices, axis=0) != 0.0, axis=1)))
+    vertices = vertices[keep]                    # repeated vertices make empty segments
+    if vertices.shape[0] < 2:
+        raise ValueError('the polyline needs two distinct vertices')
+    arc = polyline_arc_lengths_m(vertices)
+    step, length = np.diff(vertices, axis=0), np.diff(arc)
+    return Segments(vertices[:-1], step, length, step / length[:, None], arc)
+
+
+def _windows(segments: Segments, lo: np.ndarray, hi: np.ndarray, index=slice(None)
+             ) -> Tuple[np.ndarray, np.ndarray]:
+    """Return the windows [lo, hi] of arc length in each segment's own coordinate (n, m)."""
+    arc_start = segments.arc[:-1][index]
+    return (np.maximum(lo[:, None] - arc_start[None, :], 0.0),
+            np.minimum(hi[:, None] - arc_start[None, :], segments.length[index][None, :]))
+
+
 def project_onto_polyline(points_m: np.ndarray, vertices_m: np.ndarray,
                           s_min_m: ArrayOrFloat = None, s_max_m: ArrayOrFloat = None
                           ) -> Tuple[np.ndarray, np.ndarray]:
@@ -56,40 +93,42 @@ def project_onto_polyline(points_m: np.ndarray, vertices_m: np.ndarray,
     positive left of the polyline's direction (the side of the segment it falls on).
     """
     points = np.asarray(points_m, dtype=float).reshape(-1, 2)
-    vertices = np.asarray(vertices_m, dtype=float)
-    if vertices.ndim != 2 or vertices.shape[1] != 2:
-        raise ValueError(f'vertices must be (M, 2), got {vertices.shape}')
-    keep = np.concatenate(([True], np.any(np.diff(vertices, axis=0) != 0.0, axis=1)))
-    vertices = vertices[keep]                    # repeated vertices make empty segments
-    if vertices.shape[0] < 2:
-        raise ValueError('the polyline needs two distinct vertices')
-    arc = polyline_arc_lengths_m(vertices)
-    start, step = vertices[:-1], np.diff(vertices, axis=0)
-    length = np.diff(arc)
+    segments = polyline_segments(vertices_m)
     count = points.shape[0]
     lo = _window(s_min_m, count, 0.0)
-    hi = _window(s_max_m, count, arc[-1])
+    hi = _window(s_max_m, count, segments.arc[-1])
     s_out, cross_out = np.empty(count), np.empty(count)
-    chunk = max(1, _PAIRS_PER_CHUNK // length.size)
+    chunk = max(1, _PAIRS_PER_CHUNK // segments.length.size)
     for first in range(0, count, chunk):
         part = slice(first, first + chunk)
         s_out[part], cross_out[part] = _project_chunk(
-            points[part], start, step, length, arc, lo[part], hi[part])
+            points[part], segments, *_windows(segments, lo[part], hi[part]))
     return s_out, cross_out
 
 
-def _project_chunk(points: np.ndarray, start: np.ndarray, step: np.ndarray,
-                   length: np.ndarray, arc: np.ndarray, lo: np.ndarray, hi: np.ndarray
-                   ) -> Tuple[np.ndarray, np.ndarray]:
-    """Return (s, cross) of a chunk of points against every segment (the arrays (n, m))."""
+def project_onto_segments(points_m: np.ndarray, segments: Segments, index=slice(None)
+                          ) -> Tuple[np.ndarray, np.ndarray]:
+    """
+    Return (s_m, cross_m) of points (N, 2) on a polyline's segments (index: some, rising).
+
+    Bit-equal to project_onto_polyline (no window) wherever each point's nearest
+    segment is among them and the left-out ones are all farther: the same arithmetic
+    per segment, and the same first-of-equals choice, on fewer segments.
+    """
+    points = np.asarray(points_m, dtype=float).reshape(-1, 2)
+    whole = np.array([0.0]), np.array([segments.arc[-1]])     # the same for every point
+    return _project_chunk(points, segments, *_windows(segments, *whole, index), index)
+
+
+def _project_chunk(points: np.ndarray, segments: Segments, seg_lo: np.ndarray,
+                   seg_hi: np.ndarray, index=slice(None)) -> Tuple[np.ndarray, np.ndarray]:
+    """Return (s, cross) of a chunk of points on segments[index], windows (n or 1, m) given."""
+    start, unit = segments.start[index], segments.unit[index]
     rel = points[:, None, :] - start[None, :, :]                  # point - segment start
-    along = (rel * step).sum(axis=2) / length                     # foot's distance along
+    along = (rel * segments.step[index]).sum(axis=2) / segments.length[index]
     # The window, in each segment's own coordinate (an empty window: the segment is out).
-    seg_lo = np.maximum(lo[:, None] - arc[None, :-1], 0.0)
-    seg_hi = np.minimum(hi[:, None] - arc[None, :-1], length[None, :])
     inside = seg_lo <= seg_hi
     along = np.clip(along, seg_lo, np.maximum(seg_lo, seg_hi))
-    unit = step / length[:, None]
     foot = start[None, :, :] + along[..., None] * unit[None, :, :]
     distance = np.hypot(*(points[:, None, :] - foot).transpose(2, 0, 1))
     distance = np.where(inside, distance, np.inf)
@@ -99,4 +138,4 @@ def _project_chunk(points: np.ndarray, start: np.ndarray, step: np.ndarray,
         raise ValueError('a point has an empty window: s_min_m > s_max_m or off the line')
     cross = unit[best, 0] * rel[rows, best, 1] - unit[best, 1] * rel[rows, best, 0]
     side = np.where(cross >= 0.0, 1.0, -1.0)                        # left of travel: +
-    return arc[best] + along[rows, best], side * distance[rows, best]
+    return segments.arc[:-1][index][best] + along[rows, best], side * distance[rows, best]

@@ -54,8 +54,19 @@ STATUS_NO_FIX = -1
 
 def held_run_m(s_m: np.ndarray) -> float:
     """Return how far held fixes ran along a line: latest DIRECTION_FIXES' median minus first's."""
-    k = min(DIRECTION_FIXES, max(1, s_m.size // 2))
-    return float(np.median(s_m[-k:]) - np.median(s_m[:k]))
+    return ends_run_m(s_m[held_run_ends(s_m.size)])
+
+
+def held_run_ends(count: int) -> np.ndarray:
+    """Return which of count held fixes held_run_m reads: the first k and the latest k."""
+    k = min(DIRECTION_FIXES, max(1, count // 2))
+    return np.concatenate((np.arange(k), np.arange(count - k, count)))
+
+
+def ends_run_m(ends_s_m: np.ndarray) -> float:
+    """Return held_run_m from the s of the held fixes held_run_ends names alone."""
+    half = ends_s_m.size // 2
+    return float(np.median(ends_s_m[half:]) - np.median(ends_s_m[:half]))
 
 
 class Fix(NamedTuple):

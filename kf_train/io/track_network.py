@@ -35,6 +35,13 @@ MATCH_SIGMA_M = 10.0
 MATCH_CAP_M = 40.0
 SWITCH_COST = 5.0
 MAX_HOPS = 3
+NEAR_M = MATCH_CAP_M
+"""TrackNetwork.segments_near finds every segment within this of a point (the cap: beyond
+it every distance scores alike)."""
+_NEAR_MARGIN_M = 1.0
+"""Reach of the grid beyond NEAR_M: far more than any rounding of a distance."""
+_CELL_M = 40.0
+"""Side of a cell of the grid of segments [m]: a fix's candidates lie within ~80 m of it."""
 _PAIRS_PER_CHUNK = 1 << 19
 """Point-segment pairs per vectorised chunk of distances_m: bounds its arrays to ~20 MB."""
 
@@ -90,6 +97,9 @@ class TrackNetwork:
         step = np.concatenate([np.diff(v, axis=0) for v in distinct])
         self._segment_length = np.hypot(step[:, 0], step[:, 1])
         self._segment_unit = step / self._segment_length[:, None]
+        self._segment_element = np.repeat(np.arange(len(distinct)),
+                                          [len(v) - 1 for v in distinct])
+        self._grid = self._build_grid()
         count = len(self.ids)
         # joins[(element, end)] = [(element, end), ...]: ends 0 (first vertex) or 1.
         self.joins: Dict[Tuple[int, int], List[Tuple[int, int]]] = {
@@ -162,6 +172,47 @@ class TrackNetwork:
             gap = part - (start + along[..., None] * unit)         # to the foot on each
             out[first:first + chunk] = np.minimum.reduceat(
                 np.hypot(gap[..., 0], gap[..., 1]), self._first_segment, axis=1)
+        return out
+
+    def segments_near(self, point_m: np.ndarray) -> np.ndarray:
+        """Return the rising indices of segments that may lie within NEAR_M of a point (1, 2)."""
+        cell = np.floor(np.asarray(point_m, dtype=float).reshape(2) / _CELL_M)
+        return self._grid.get((int(cell[0]), int(cell[1])), np.zeros(0, dtype=np.intp))
+
+    def _build_grid(self) -> Dict[Tuple[int, int], np.ndarray]:
+        """Return {cell: rising indices of the segments whose box, widened, overlaps it}."""
+        start = self._segment_start
+        end = start + self._segment_unit * self._segment_length[:, None]
+        reach_m = NEAR_M + _NEAR_MARGIN_M
+        low = np.floor((np.minimum(start, end) - reach_m) / _CELL_M).astype(np.intp)
+        high = np.floor((np.maximum(start, end) + reach_m) / _CELL_M).astype(np.intp)
+        size = high - low + 1
+        count = size[:, 0] * size[:, 1]
+        segment = np.repeat(np.arange(start.shape[0]), count)
+        k = np.arange(segment.size) - np.repeat(np.cumsum(count) - count, count)
+        ix = low[segment, 0] + k % size[segment, 0]
+        iy = low[segment, 1] + k // size[segment, 0]
+        order = np.lexsort((segment, iy, ix))
+        ix, iy, segment = ix[order], iy[order], segment[order]
+        cuts = np.flatnonzero((np.diff(ix) != 0) | (np.diff(iy) != 0)) + 1
+        return {(int(ix[a]), int(iy[a])): segment[a:b]
+                for a, b in zip(np.concatenate(([0], cuts)), np.concatenate((cuts, [ix.size])))}
+
+    def distances_near_m(self, point_m: np.ndarray, near: np.ndarray) -> np.ndarray:
+        """Return distances_m of one point (1, 2), but inf for elements provably beyond NEAR_M."""
+        # near: segments_near(point_m). Within NEAR_M the same arithmetic on fewer segments
+        # (the element's nearest one is among them): bit-equal; beyond it both are
+        # >= MATCH_CAP_M, which emission caps.
+        out = np.full((1, len(self.ids)), np.inf)
+        if near.size:
+            part = np.asarray(point_m, dtype=float).reshape(1, 1, 2)
+            start, unit = self._segment_start[near], self._segment_unit[near]
+            along = np.clip(((part - start) * unit).sum(axis=2), 0.0, self._segment_length[near])
+            gap = part - (start + along[..., None] * unit)
+            element = self._segment_element[near]
+            first = np.flatnonzero(np.concatenate(([True], element[1:] != element[:-1])))
+            out[0, element[first]] = np.minimum.reduceat(
+                np.hypot(gap[..., 0], gap[..., 1]), first, axis=1)[0]
         return out
 
     def transition(self) -> np.ndarray:

@@ -1,6 +1,7 @@
 """kf_train.io.track: points onto a polyline, along-track s and signed cross-track d."""
 
-from kf_train.io.track import polyline_arc_lengths_m, project_onto_polyline
+from kf_train.io.track import (
+    polyline_arc_lengths_m, polyline_segments, project_onto_polyline, project_onto_segments)
 import numpy as np
 import pytest
 
@@ -72,3 +73,22 @@ def test_bad_inputs():
         project_onto_polyline(np.zeros((1, 2)), np.array([[1.0, 1.0], [1.0, 1.0]]))
     with pytest.raises(ValueError):
         project_onto_polyline(np.zeros((1, 2)), L_SHAPE, 80.0, 20.0)
+
+
+def test_some_segments_as_the_whole_line():
+    """On the segments that may hold a point's nearest (a superset of them): the same bits."""
+    rng = np.random.default_rng(26)
+    angles = np.cumsum(rng.uniform(-0.6, 0.6, 30))
+    vertices = np.cumsum(np.column_stack([np.cos(angles), np.sin(angles)]) * 40.0, axis=0)
+    vertices = np.insert(vertices, 7, vertices[6], axis=0)      # a repeated vertex
+    points = vertices[rng.integers(0, 30, 200)] + rng.normal(0.0, 30.0, (200, 2))
+    s, d = project_onto_polyline(points, vertices)
+    segments = polyline_segments(vertices)
+    whole = project_onto_segments(points, segments)
+    assert np.array_equal(whole[0], s) and np.array_equal(whole[1], d)
+    each = np.abs(np.array([project_onto_segments(points, segments, [j])[1]
+                            for j in range(segments.length.size)]))     # (M, N)
+    for k, point in enumerate(points):
+        index = np.flatnonzero(each[:, k] <= np.abs(d[k]) + rng.uniform(0.0, 50.0))
+        some = project_onto_segments(point, segments, index)
+        assert (some[0][0], some[1][0]) == (s[k], d[k])

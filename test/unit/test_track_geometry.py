@@ -2,7 +2,8 @@
 
 import json
 
-from kf_train.io.track_fixes import TrackFixes
+from kf_train.io.track_fixes import (
+    DIRECTION_FIXES, held_run_ends, held_run_m, TrackFixes)
 from kf_train.io.track_geometry import load_track, TrackError, TrackGeometry
 import numpy as np
 import pytest
@@ -138,6 +139,20 @@ def test_direction_auto(reverse):
                                atol=TOLERANCE_M)
     assert all(f.cross_m == pytest.approx(2.0, abs=TOLERANCE_M) for f in out)
     assert [f.tag for f in out] == [0.4 * i for i in range(len(lat))]
+
+
+def test_the_run_reads_only_its_ends():
+    """The run is the medians' difference, and reads only the fixes held_run_ends names."""
+    rng = np.random.default_rng(3)
+    for count in range(1, 40):
+        s_m = rng.normal(0.0, 10.0, count)
+        k = min(DIRECTION_FIXES, max(1, count // 2))
+        assert held_run_m(s_m) == float(np.median(s_m[-k:]) - np.median(s_m[:k]))
+        unread = np.setdiff1d(np.arange(count), held_run_ends(count))
+        assert unread.size == max(0, count - 2 * k)
+        scrambled = s_m.copy()
+        scrambled[unread] = rng.normal(0.0, 1e6, unread.size)
+        assert held_run_m(scrambled) == held_run_m(s_m)
 
 
 def test_direction_waits_for_a_run():

@@ -1,6 +1,6 @@
 """Map matching on a small synthetic network with a switch: the path the fixes ran."""
 
-from kf_train.io.track_network import TrackNetwork
+from kf_train.io.track_network import emission, MATCH_CAP_M, NEAR_M, TrackNetwork
 import numpy as np
 import pytest
 
@@ -74,3 +74,19 @@ def test_no_turn_back_at_a_switch():
     net = TrackNetwork(network(False))
     b, c = net.ids.index('B'), net.ids.index('C')
     assert (c, 1) not in net.joins[(b, 0)] and (b, 0) not in net.joins[(c, 1)]
+
+
+def test_distances_near_a_point_as_distances():
+    """Within NEAR_M the grid's distances are distances_m's to the bit; beyond, both cap."""
+    net = TrackNetwork(network(False))
+    rng = np.random.default_rng(9)
+    vertices = np.concatenate(net.lines_m)
+    points = vertices[rng.integers(0, len(vertices), 1000)] + rng.uniform(-90, 90, (1000, 2))
+    full = net.distances_m(points)
+    for k, point in enumerate(points):
+        near = net.distances_near_m(point[None], net.segments_near(point[None]))
+        within = full[k] <= NEAR_M
+        assert np.array_equal(near[0, within], full[k, within])
+        assert np.all(near[0, ~within] >= MATCH_CAP_M)
+        assert np.array_equal(emission(near), emission(full[k:k + 1]))
+    assert 0.2 < np.mean(full <= NEAR_M) < 0.8          # both sides of the reach are tried

@@ -142,3 +142,37 @@ def test_the_parallel_pair_keeps_x_continuous(drawn_reversed, reverse):
     step = np.diff(x)
     # No step beyond the travel and the noise: 8 m ± 2 · 3 σ of the along-track noise.
     assert np.all(np.abs(step - STEP_M) < 6 * NOISE_M)
+
+
+@pytest.mark.parametrize('with_covariance', [False, True])
+@pytest.mark.parametrize('reverse', [False, True])
+def test_the_segments_near_a_fix_change_nothing(monkeypatch, with_covariance, reverse):
+    """On the segments near each fix only (the grid), every output is all segments' to the bit."""
+    lat, lon = fixes('ABP', reverse)
+    gross = []                 # sideways: 25 m (within the grid's reach) and 200 m (beyond)
+    for k, off_m in ((40, 25.0), (90, GROSS_M), (150, GROSS_M), (200, 25.0), (230, GROSS_M)):
+        azimuth = GEOD.inv(lon[k - 1], lat[k - 1], lon[k], lat[k])[0]
+        gross.append((k, GEOD.fwd(lon[k], lat[k], azimuth + 90.0, off_m)[:2]))
+    lat, lon = fixes('ABP', reverse, gross)
+    wide = {150, 230}          # σ 80 m: a bound beyond the reach, so the fix is measured
+
+    def run(net: TrackNetwork):
+        """Return what a run published: the fixes released, the elements, the counts."""
+        live = NetworkFixes(net, NOISE_M ** 2)
+        released, published = [], []
+        for k, (a, b) in enumerate(zip(lat.tolist(), lon.tolist())):
+            covariance = None
+            if with_covariance:
+                covariance = np.diag([6400.0, 6400.0]) if k in wide else np.array(
+                    [[4.0, 1.0], [1.0, 9.0]])
+            released += live.add(k, a, b, covariance)
+            published.append(live.element)
+        return released, published, live.counts
+
+    fast = run(TrackNetwork(network()))
+    every = TrackNetwork(network())
+    all_segments = np.arange(sum(len(line) - 1 for line in every.lines_m))
+    monkeypatch.setattr(every, 'segments_near', lambda point_m: all_segments)
+    assert fast == run(every)
+    off = {k for k, _ in gross} - (wide if with_covariance else set())
+    assert sorted(set(range(lat.size)) - {f.tag for f in fast[0]}) == sorted(off)
