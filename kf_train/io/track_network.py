@@ -163,16 +163,20 @@ class TrackNetwork:
     def distances_m(self, points_m: np.ndarray) -> np.ndarray:
         """Return the (N, E) distance of points (N, 2) in the network's frame to each element."""
         points = np.asarray(points_m, dtype=float).reshape(-1, 2)
-        start, unit = self._segment_start, self._segment_unit
         out = np.empty((points.shape[0], len(self.ids)))
-        chunk = max(1, _PAIRS_PER_CHUNK // start.shape[0])
+        chunk = max(1, _PAIRS_PER_CHUNK // self._segment_start.shape[0])
         for first in range(0, points.shape[0], chunk):
-            part = points[first:first + chunk, None, :]
-            along = np.clip(((part - start) * unit).sum(axis=2), 0.0, self._segment_length)
-            gap = part - (start + along[..., None] * unit)         # to the foot on each
             out[first:first + chunk] = np.minimum.reduceat(
-                np.hypot(gap[..., 0], gap[..., 1]), self._first_segment, axis=1)
+                self._segment_distances(points[first:first + chunk, None, :]),
+                self._first_segment, axis=1)
         return out
+
+    def _segment_distances(self, part: np.ndarray, index=slice(None)) -> np.ndarray:
+        """Return the distance (n, m) of points (n, 1, 2) to their feet on segments[index]."""
+        start, unit = self._segment_start[index], self._segment_unit[index]
+        along = np.clip(((part - start) * unit).sum(axis=2), 0.0, self._segment_length[index])
+        gap = part - (start + along[..., None] * unit)             # to the foot on each
+        return np.hypot(gap[..., 0], gap[..., 1])
 
     def segments_near(self, point_m: np.ndarray) -> np.ndarray:
         """Return the rising indices of segments that may lie within NEAR_M of a point (1, 2)."""
@@ -206,13 +210,10 @@ class TrackNetwork:
         out = np.full((1, len(self.ids)), np.inf)
         if near.size:
             part = np.asarray(point_m, dtype=float).reshape(1, 1, 2)
-            start, unit = self._segment_start[near], self._segment_unit[near]
-            along = np.clip(((part - start) * unit).sum(axis=2), 0.0, self._segment_length[near])
-            gap = part - (start + along[..., None] * unit)
             element = self._segment_element[near]
             first = np.flatnonzero(np.concatenate(([True], element[1:] != element[:-1])))
             out[0, element[first]] = np.minimum.reduceat(
-                np.hypot(gap[..., 0], gap[..., 1]), first, axis=1)[0]
+                self._segment_distances(part, near), first, axis=1)[0]
         return out
 
     def transition(self) -> np.ndarray:
