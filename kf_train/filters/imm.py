@@ -32,7 +32,7 @@ underflows a float (filterpy then substitutes 2.2e-308) still gets its probabili
 """
 
 import math
-from typing import Callable, NamedTuple, Optional, Sequence, Tuple
+from typing import Callable, NamedTuple, Optional, Sequence, Tuple, Union
 
 from kf_train.filters import imm_stack
 from kf_train.filters.contract import regime_columns
@@ -217,7 +217,8 @@ def _noise_row(R) -> np.ndarray:
     return as_covariance('R', R, 1)[0]
 
 
-def noise_in_use(reported: np.ndarray, noise: NoiseScale, learn: bool) -> np.ndarray:
+def noise_in_use(reported: Union[np.ndarray, float], noise: NoiseScale, learn: bool
+                 ) -> Union[np.ndarray, float]:
     """Return R = s r, the learned scale on the variance given (exactly r while s is 1)."""
     return reported if noise.scale == 1.0 or not learn else reported * noise.scale
 
