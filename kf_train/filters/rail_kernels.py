@@ -282,22 +282,26 @@ def step(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
 
 @_jit
 def _joseph(P, K, k, R, out):
-    """Write P = (I - K e_kᵀ) P⁻ (I - K e_kᵀ)ᵀ + K R Kᵀ, symmetrised, into ``out``."""
+    """
+    Write P = (I - K e_kᵀ) P⁻ (I - K e_kᵀ)ᵀ + K R Kᵀ, symmetrised, into ``out``.
+
+    Row a of (I - K e_kᵀ) is e_aᵀ - K_a e_kᵀ: each product's entry is one or two terms
+    (adding the other n - 2, exact zeros, leaves a sum as it was): the full sums to the bit.
+    """
     n = P.shape[0]
     IP = np.empty((n, n))
     for a in range(n):
         for c in range(n):
-            total = 0.0
-            for b in range(n):
-                factor = (1.0 if a == b else 0.0) - (K[a] if b == k else 0.0)
-                total += factor * P[b, c]
-            IP[a, c] = total
+            if a == k:
+                IP[a, c] = (1.0 - K[a]) * P[k, c]
+            else:
+                IP[a, c] = P[a, c] + (-K[a]) * P[k, c]
     for a in range(n):
         for c in range(n):
-            total = 0.0
-            for b in range(n):
-                factor = (1.0 if c == b else 0.0) - (K[c] if b == k else 0.0)
-                total += IP[a, b] * factor
+            if c == k:
+                total = IP[a, k] * (1.0 - K[c])
+            else:
+                total = IP[a, c] + IP[a, k] * (-K[c])
             out[a, c] = total + (K[a] * R) * K[c]
     _symmetrise(out)
 
