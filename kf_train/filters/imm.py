@@ -32,13 +32,13 @@ underflows a float (filterpy then substitutes 2.2e-308) still gets its probabili
 """
 
 import math
-from typing import Callable, NamedTuple, Optional, Sequence, Tuple, Union
+from typing import Callable, NamedTuple, Optional, Sequence, Tuple
 
 from kf_train.filters import imm_stack
 from kf_train.filters.contract import regime_columns
 from kf_train.filters.imm_stack import frozen as _frozen, LinearStack
 from kf_train.filters.kalman import LOG_2PI, UpdateResult
-from kf_train.filters.noise_adaptation import FIXED, NoiseAdaptation, NoiseScale
+from kf_train.filters.noise_adaptation import FIXED, NoiseAdaptation, NoiseScale, Variance
 from kf_train.filters.validation import as_covariance, as_finite_array, as_vector
 import numpy as np
 
@@ -217,8 +217,7 @@ def _noise_row(R) -> np.ndarray:
     return as_covariance('R', R, 1)[0]
 
 
-def noise_in_use(reported: Union[np.ndarray, float], noise: NoiseScale, learn: bool
-                 ) -> Union[np.ndarray, float]:
+def noise_in_use(reported: Variance, noise: NoiseScale, learn: bool) -> Variance:
     """Return R = s r, the learned scale on the variance given (exactly r while s is 1)."""
     return reported if noise.scale == 1.0 or not learn else reported * noise.scale
 

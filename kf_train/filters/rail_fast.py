@@ -13,6 +13,10 @@ Q(dt) (:meth:`RailModel.matrices`), the learned measurement noise and the gate's
 (:meth:`~kf_train.filters.imm.IMM.finish_update`), the no-reversal hold
 (:meth:`RailModel.hold_paths`), the checks of inputs. The tests hold it to the reference
 to rounding (relative 1e-9) on random regimes, dts, rewinds and speed updates.
+A live step is one compiled call: :meth:`FastRailModel.predict_update` also combines
+the new state and predicts it as far ahead as the last :meth:`~FastRailModel.predict_ahead`
+asked (the estimator's horizon), by the kernels those methods run, and hands both out
+once to the next :meth:`~FastRailModel.estimate` and ``predict_ahead`` of that state.
 
 numba is the optional ``jit`` extra, and the compiled model is opt-in:
 :func:`rail_model` gives it when numba is installed and the environment variable
