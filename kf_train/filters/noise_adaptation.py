@@ -29,7 +29,12 @@ repeats it bit for bit.
 
 from dataclasses import dataclass
 import math
-from typing import NamedTuple
+from typing import NamedTuple, TypeVar
+
+import numpy as np
+
+Variance = TypeVar('Variance', np.ndarray, float)
+"""A variance given to an update: R's row (1,) or a float [m²]."""
 
 
 class NoiseScale(NamedTuple):

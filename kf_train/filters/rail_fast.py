@@ -13,6 +13,10 @@ Q(dt) (:meth:`RailModel.matrices`), the learned measurement noise and the gate's
 (:meth:`~kf_train.filters.imm.IMM.finish_update`), the no-reversal hold
 (:meth:`RailModel.hold_paths`), the checks of inputs. The tests hold it to the reference
 to rounding (relative 1e-9) on random regimes, dts, rewinds and speed updates.
+A live step is one compiled call: :meth:`FastRailModel.predict_update` also combines
+the new state and predicts it as far ahead as the last :meth:`~FastRailModel.predict_ahead`
+asked (the estimator's horizon), by the kernels those methods run, and hands both out
+once to the next :meth:`~FastRailModel.estimate` and ``predict_ahead`` of that state.
 
 numba is the optional ``jit`` extra, and the compiled model is opt-in:
 :func:`rail_model` gives it when numba is installed and the environment variable
@@ -99,6 +103,17 @@ class FastRailModel(RailModel):
             parameters.response_time_s, parameters.stand_noise, parameters.capability_noise,
             STAND_TRANSITION, _PHI2_SERIES, _PHI3_SERIES, _SERIES_BELOW, table, scale, powers)
         self._kept: Dict[float, Tuple[np.ndarray, np.ndarray]] = {}
+        # What the last predict_update computed beyond its state (see predict_update):
+        # (state, x, P) and (state, horizon, status, x, P), each handed out once.
+        self._step_estimate: Optional[tuple] = None
+        self._step_ahead: Optional[tuple] = None
+        self._ahead_s: Optional[float] = None
+        """The horizon of the last predict_ahead: the one a step computes ahead for."""
+        # Typed as StopFinder.tables' grids (numba compiles one version): strided, read-only.
+        no_grid = np.zeros((1, 4, 8))[:, :, ::2], np.zeros((1, 1, 4, 4))
+        for array in no_grid:
+            array.flags.writeable = False
+        self._no_ahead = (0.0, 0.0) + no_grid
 
     def dynamics(self, dt_s: float) -> Tuple[np.ndarray, np.ndarray]:
         """
@@ -137,19 +152,40 @@ class FastRailModel(RailModel):
 
     def predict_update(self, state: IMMState, dt_s: float, z, R=None,
                        index: Optional[int] = None) -> Tuple[IMMState, UpdateResult]:
-        """Return the update (of state ``index``) after the prediction: one compiled call."""
+        """
+        Return the update (of state ``index``) after the prediction: one compiled call.
+
+        The same call (``rail_kernels.step``) combines the new state (for
+        :meth:`estimate`) and predicts it as far ahead as the last :meth:`predict_ahead`
+        asked: a live step's three calls in one. Both are kept for the new state and
+        handed out once, by the kernels a separate call runs (the same numbers).
+        """
         dt_s = imm_stack.duration(dt_s)
         z, reported, selected, learn = self._measurement(z, R, index)
         F, Q = self.dynamics(dt_s)
+        horizon_s = self._ahead_s
+        if horizon_s is None:
+            (ahead_F, ahead_Q), tables = (F, Q), self._no_ahead
+        else:
+            (ahead_F, ahead_Q), tables = self.dynamics(horizon_s), self.stop_finder.tables(
+                horizon_s)
+        reported_m2 = float(reported[0])
         means, covs, posterior = self._arrays()
-        gain = np.empty(self._stack.dim_x)
-        y, S, nis, status = self.kernels.predict_update(
+        n = self._stack.dim_x
+        gain, x, P, ahead_x, ahead_P = (np.empty(n), np.empty(n), np.empty((n, n)),
+                                        np.empty(n), np.empty((n, n)))
+        y, S, nis, status, ahead_status = self.kernels.step(
             state.means, state.covariances, state.probabilities, dt_s, F, Q, *self._constants,
-            z, selected, float(noise_in_use(reported, state.noise, learn)[0]), means, covs,
-            posterior, gain)
+            z, selected, noise_in_use(reported_m2, state.noise, learn), ahead_F, ahead_Q,
+            self.stop_finder.tau_s, *tables, horizon_s is not None, means, covs, posterior,
+            gain, x, P, ahead_x, ahead_P)
         _raise(status, 'update')
-        return self.finish_update(state, means, covs, posterior, (y, S, nis, gain),
-                                  float(reported[0]), learn)
+        updated, result = self.finish_update(state, means, covs, posterior,
+                                             (y, S, nis, gain), reported_m2, learn)
+        self._step_estimate = updated, x, P
+        self._step_ahead = None if horizon_s is None else (
+            updated, horizon_s, ahead_status, ahead_x, ahead_P)
+        return updated, result
 
     def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
         """Return the state corrected by a position z, velocities held (compiled)."""
@@ -185,7 +221,11 @@ class FastRailModel(RailModel):
                                   float(reported[0]), learn)
 
     def estimate(self, state: IMMState) -> Tuple[np.ndarray, np.ndarray]:
-        """Return the combined (x, P) of a state (compiled)."""
+        """Return the combined (x, P) of a state (compiled; a step's own if it made it)."""
+        kept = self._step_estimate
+        if kept is not None and kept[0] is state:
+            self._step_estimate = None
+            return kept[1], kept[2]
         n = self._stack.dim_x
         x, P = np.empty(n), np.empty((n, n))
         self.kernels.combine(state.means, state.covariances, state.probabilities, x, P)
@@ -197,6 +237,12 @@ class FastRailModel(RailModel):
         dt_s = imm_stack.duration(dt_s)
         if u is not None:
             raise ValueError('u given to a model without control input')
+        self._ahead_s = dt_s
+        kept = self._step_ahead
+        if kept is not None and kept[0] is state and kept[1] == dt_s:
+            self._step_ahead = None
+            _raise(kept[2], 'prediction')
+            return kept[3], kept[4]
         F, Q = self.dynamics(dt_s)
         stops = self.stop_finder
         n = self._stack.dim_x

@@ -254,23 +254,54 @@ def predict_update(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop
 
 
 @_jit
+def step(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
+         stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, z, selected, R,
+         ahead_F, ahead_Q, tau_s, phi1, phi2, first, steps, with_ahead, out_x, out_P,
+         out_posterior, out_gain, x, P, ahead_x, ahead_P):
+    """
+    Do a live step in one call: :func:`predict_update`, then :func:`combine` and :func:`ahead`.
+
+    The estimate (x, P) and, if ``with_ahead``, the prediction ahead (ahead_x, ahead_P,
+    over ahead_F, ahead_Q and the StopFinder's tables) of the updated state, written by
+    the very kernels a separate call runs (so their numbers are those to the bit).
+    Returns (y, S, NIS, status, the prediction's status).
+    """
+    y, S, nis, status = predict_update(
+        means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz, stop_speed_mps,
+        index_x, factor_x, index_P, factor_P, noise_P, z, selected, R, out_x, out_P,
+        out_posterior, out_gain)
+    if status != OK:
+        return y, S, nis, status, OK
+    combine(out_x, out_P, out_posterior, x, P)
+    ahead_status = OK
+    if with_ahead:
+        ahead_status = ahead(out_x, out_P, out_posterior, ahead_F, ahead_Q, stopping, tau_s,
+                             phi1, phi2, first, steps, ahead_x, ahead_P)
+    return y, S, nis, status, ahead_status
+
+
+@_jit
 def _joseph(P, K, k, R, out):
-    """Write P = (I - K e_kᵀ) P⁻ (I - K e_kᵀ)ᵀ + K R Kᵀ, symmetrised, into ``out``."""
+    """
+    Write P = (I - K e_kᵀ) P⁻ (I - K e_kᵀ)ᵀ + K R Kᵀ, symmetrised, into ``out``.
+
+    Row a of (I - K e_kᵀ) is e_aᵀ - K_a e_kᵀ: each product's entry is one or two terms
+    (adding the other n - 2, exact zeros, leaves a sum as it was): the full sums to the bit.
+    """
     n = P.shape[0]
     IP = np.empty((n, n))
     for a in range(n):
         for c in range(n):
-            total = 0.0
-            for b in range(n):
-                factor = (1.0 if a == b else 0.0) - (K[a] if b == k else 0.0)
-                total += factor * P[b, c]
-            IP[a, c] = total
+            if a == k:
+                IP[a, c] = (1.0 - K[a]) * P[k, c]
+            else:
+                IP[a, c] = P[a, c] + (-K[a]) * P[k, c]
     for a in range(n):
         for c in range(n):
-            total = 0.0
-            for b in range(n):
-                factor = (1.0 if c == b else 0.0) - (K[c] if b == k else 0.0)
-                total += IP[a, b] * factor
+            if c == k:
+                total = IP[a, k] * (1.0 - K[c])
+            else:
+                total = IP[a, c] + IP[a, k] * (-K[c])
             out[a, c] = total + (K[a] * R) * K[c]
     _symmetrise(out)
 

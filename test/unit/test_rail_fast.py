@@ -110,6 +110,31 @@ def test_every_step_is_the_reference_s(models, seed):
                 assert_close(ours, theirs)
 
 
+def test_a_step_hands_out_its_estimate_and_prediction_once(models):
+    """predict_update's own estimate and look-ahead: once each, equal to the bit to a new call."""
+    reference = models[0]
+    fast = FastRailModel()
+    for state, dt, z, _ in _random_states(reference, 4, 40):
+        for horizon_s in (2.0, 0.5):
+            fast.predict_ahead(state, horizon_s)           # the horizon a step predicts to
+            updated = fast.predict_update(state, dt, z)[0]
+            kept = fast.estimate(updated), fast.predict_ahead(updated, horizon_s)
+            again = fast.estimate(updated), fast.predict_ahead(updated, horizon_s)
+            # The same kernels on the same arrays: equal to the bit (the tolerance is 0).
+            for ours, theirs in zip(kept, again):
+                for mine, new in zip(ours, theirs):
+                    assert mine is not new and np.array_equal(mine, new)
+            for ours, theirs in zip(again, (reference.estimate(updated),
+                                            reference.predict_ahead(updated, horizon_s))):
+                for mine, expected in zip(ours, theirs):
+                    assert_close(mine, expected)
+            other = fast.predict_update(state, dt, z + 3.0)[0]
+            # Another state, or another horizon, is computed afresh.
+            assert np.array_equal(fast.predict_ahead(updated, horizon_s)[1], again[1][1])
+            assert np.array_equal(fast.predict_ahead(other, 1.0)[1],
+                                  FastRailModel().predict_ahead(other, 1.0)[1])
+
+
 def test_learned_noise_and_gate_nis_follow_the_reference(models):
     """A scale learned below 1 (gate_nis set) and at its bounds, step for step."""
     reference, fast = models
