@@ -403,7 +403,7 @@ def _compiled_pass(segment: Segment, model: _Model, reported: np.ndarray, noise,
     if N < 2:
         return result
     state = _first(model.base, float(segment.z[0, 0]), reported[:, 0]) + (
-        np.tile(np.array([1.0, 0.0, 0.0, 0.0]), (count, 1)), np.full(count, segment.t_s[0]))
+        np.tile(np.array([1.0, 0.0, 0.0]), (count, 1)), np.full(count, segment.t_s[0]))
 
     def unit_matrices(dt_s: float):
         unit = model.units(dt_s)

@@ -1,28 +1,44 @@
 """
-The measurement noise learned online: a scale on the reported variance, by covariance matching.
+The measurement noise learned online: a scale on the reported variance, by recursive likelihood.
 
 A GNSS receiver reports an accuracy (hAcc), and the variance a message carries is
 built from it; but that figure describes the receiver's slow error, not what one fix
 adds to the next: on real train logs the filter's NIS averages 0.05-0.08 when the
-reported variance is used as R (docs/rail.md). So R is not trusted as given: the
-filter uses R = s·r, r the variance given to the update, and learns the scale s from
-its own innovations (covariance matching, Mehra 1972; Myers and Tapley 1976).
+reported variance is used as R (docs/rail.md), and during a cold start a receiver
+reports hAcc of hundreds of metres for fixes a few metres off. So R is not trusted as
+given: the filter uses R = s·r, r the variance given to the update, and learns the
+scale s from its own innovations.
 
-For a scalar measurement the innovation y has variance S = h + s·r, h = H P Hᵀ the
-prediction's share. So y² - h estimates s·r, and over a window
+For a scalar measurement the innovation y is N(0, S), S = h + s·r, h = H P Hᵀ the
+prediction's share. Its log-likelihood's derivative in log s (the score) and the
+Fisher information are
 
-    s = Σ w_k (y_k² - h_k) / Σ w_k r_k,
+    u = ½ a (y²/S - 1),    i = ½ a²,    a = s·r / S (R's share of S),
 
-the pooled ratio: a fix that reports a larger variance carries its share of it, so a
-cold start with hAcc of a kilometre scales as much as it reports. Both sums are
-exponentially weighted averages over ``window`` measurements; until that many have
-been fused, each new one weighs 1/(count + prior) so the start adapts in tens of
-fixes, not hundreds. The prior is s = 1 (R as reported) with the weight of ``prior``
-measurements. s stays within [scale_min, scale_max], so no run of lucky or unlucky
-innovations can make the filter ignore its measurements or believe one fix exactly.
+and s follows them by recursive Fisher scoring in log s (Ljung and Söderström 1983):
+
+    J ← (1 - 1/window) J + i,    log s ← log s + u / J.
+
+In log s the scale falls by about 1/(a·window) an e-fold a fix once J is full, and
+faster at the start (J = the prior's information); an average of y² − h (covariance
+matching, Mehra 1972, this module's rule until 2026-11-28) falls by e per window only
+once the large lessons of a cold start or of the prior have been forgotten: it kept
+the node's R at hAcc²/4 through a simulated cold start whose fixes were a few metres
+off for an hAcc of hundreds (the 2-s prediction 70 m behind), and took 400 fixes to
+reach its floor on a clean real log (docs/real-logs.md). Each fix's lesson is weighed
+by its own information, so a fix whose S is mostly the prediction's (the first fixes,
+after a gap) teaches little, and the size of r does not matter: a cold start's hAcc of
+a kilometre says nothing about s until its fixes show it.
+
+Robust to the gross fixes the gate lets through: a lesson's NIS is taken as at most
+``CLIP_NIS`` (3σ; divided by E[min(χ²₁, CLIP_NIS)] so that the right s stays the
+fixed point), and one step moves log s by at most ``STEP_MAX``. The prior is s = 1
+(R as reported) with the information of ``prior`` fixes whose S is all R. s stays
+within [scale_min, scale_max], so no run of lucky or unlucky innovations can make the
+filter ignore its measurements or believe one fix exactly.
 
 Only fused measurements teach s (a gated-out fix never reaches the update that
-adapts), and the whole adaptation is three floats of the filter's state
+adapts), and the whole adaptation is three numbers of the filter's state
 (:class:`NoiseScale`), so rewinding to an old state rewinds it too, and a replay
 repeats it bit for bit.
 """
@@ -31,6 +47,7 @@ from dataclasses import dataclass
 import math
 from typing import NamedTuple, TypeVar
 
+from kf_train.filters.chi2 import chi2_cdf, chi2_sf
 import numpy as np
 
 Variance = TypeVar('Variance', np.ndarray, float)
@@ -38,20 +55,24 @@ Variance = TypeVar('Variance', np.ndarray, float)
 
 
 class NoiseScale(NamedTuple):
-    """The adaptation's state: the scale in use and the two weighted averages behind it."""
+    """The adaptation's state: the scale in use and the information behind it."""
 
     scale: float = 1.0
     """s: the measurement noise in use is s times the variance given (1: as given)."""
-    excess_m2: float = 0.0
-    """The weighted average of y² - h, the innovations' share not explained by P [m²]."""
-    reported_m2: float = 0.0
-    """The weighted average of the variances given, r [m²] (0: nothing fused yet)."""
+    information: float = 0.0
+    """J: the forgetting sum of the fixes' Fisher information about log s (0: none yet)."""
     count: int = 0
     """How many measurements have taught it (up to the window: then it stays there)."""
 
 
 FIXED = NoiseScale()
 """The state of a filter that does not adapt: R as given."""
+CLIP_NIS = 9.0
+"""A lesson's NIS is taken as at most this: one gross fix raises s by a bounded step."""
+CLIPPED_NIS_MEAN = chi2_cdf(CLIP_NIS, 3) + CLIP_NIS * chi2_sf(CLIP_NIS, 1)
+"""E[min(X, CLIP_NIS)], X ~ χ²₁ (= P(χ²₃ <= c) + c P(χ²₁ > c)): 0.9950."""
+STEP_MAX = 0.2
+"""The largest step of log s for one fix (s changes by at most 22 % a fix)."""
 
 
 @dataclass(frozen=True)
@@ -60,7 +81,7 @@ class NoiseAdaptation:
 
     window: int = 100
     """The averages' memory [measurements]; 0 turns the adaptation off."""
-    prior: int = 20
+    prior: int = 10
     """Weight of the prior s = 1, as a number of measurements."""
     scale_min: float = 1e-3
     """Lower bound of s."""
@@ -99,16 +120,13 @@ class NoiseAdaptation:
         """
         if not self.enabled or not reported_m2 > 0.0:
             return state
-        h = innovation_variance_m2 - state.scale * reported_m2    # H P Hᵀ
-        excess = innovation_m * innovation_m - h                  # y² - h: estimates s r
-        if state.count == 0:
-            # The prior, s = 1, as ``prior`` measurements of this variance.
-            mean_excess, mean_reported, weight = reported_m2, reported_m2, self.prior
-        else:
-            mean_excess, mean_reported = state.excess_m2, state.reported_m2
-            weight = min(state.count + self.prior, self.window)
-        w = 1.0 / (weight + 1.0)
-        mean_excess += w * (excess - mean_excess)                 # Σ w (y² - h) / Σ w
-        mean_reported += w * (reported_m2 - mean_reported)        # Σ w r / Σ w
-        scale = min(max(mean_excess / mean_reported, self.scale_min), self.scale_max)
-        return NoiseScale(scale, mean_excess, mean_reported, min(state.count + 1, self.window))
+        S = innovation_variance_m2
+        share = state.scale * reported_m2 / S                     # a = s r / S
+        nis = min(innovation_m * innovation_m / S, CLIP_NIS)
+        score = 0.5 * share * (nis / CLIPPED_NIS_MEAN - 1.0)      # u = ½ a (y²/S - 1)
+        # The prior, s = 1, as the information of ``prior`` fixes whose S is all R.
+        information = state.information if state.count else 0.5 * self.prior
+        information = information * (1.0 - 1.0 / self.window) + 0.5 * share * share
+        step = min(max(score / information, -STEP_MAX), STEP_MAX)  # log s += u / J
+        scale = min(max(state.scale * math.exp(step), self.scale_min), self.scale_max)
+        return NoiseScale(scale, information, min(state.count + 1, self.window))

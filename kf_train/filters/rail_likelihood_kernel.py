@@ -33,7 +33,8 @@ optional: this module loads on first use (:mod:`kf_train.filters`' ``_LAZY``).
 import math
 from typing import Callable, Tuple
 
-from kf_train.filters.noise_adaptation import NoiseAdaptation
+from kf_train.filters.noise_adaptation import (
+    CLIP_NIS, CLIPPED_NIS_MEAN, NoiseAdaptation, STEP_MAX)
 from kf_train.filters.rail_dynamics import RelaxationNoise
 from kf_train.filters.rail_fast import FastRailModel
 from kf_train.filters.rail_kernels import (
@@ -54,22 +55,18 @@ UnitMatrices = Callable[[float], Tuple[np.ndarray, np.ndarray, np.ndarray]]
 
 @_jit
 def _learn(noise, y, S, r, window, prior, scale_min, scale_max):
-    """Update ``noise`` [s, excess, reported, count] after a fused fix: NoiseAdaptation.learn."""
+    """Update ``noise`` [s, J, count] after a fused fix: NoiseAdaptation.learn."""
     if window <= 0.0 or not r > 0.0:
         return
-    h = S - noise[0] * r                                      # H P Hᵀ
-    excess = y * y - h                                        # y² - h: estimates s r
-    if noise[3] == 0.0:
-        mean_excess, mean_reported, weight = r, r, prior      # the prior s = 1
-    else:
-        mean_excess, mean_reported = noise[1], noise[2]
-        weight = min(noise[3] + prior, window)
-    w = 1.0 / (weight + 1.0)
-    mean_excess += w * (excess - mean_excess)
-    mean_reported += w * (r - mean_reported)
-    noise[0] = min(max(mean_excess / mean_reported, scale_min), scale_max)
-    noise[1], noise[2] = mean_excess, mean_reported
-    noise[3] = min(noise[3] + 1.0, window)
+    share = noise[0] * r / S                                  # a = s r / S
+    nis = min(y * y / S, CLIP_NIS)
+    score = 0.5 * share * (nis / CLIPPED_NIS_MEAN - 1.0)      # u = ½ a (y²/S - 1)
+    information = noise[1] if noise[2] > 0.0 else 0.5 * prior
+    information = information * (1.0 - 1.0 / window) + 0.5 * share * share
+    step = min(max(score / information, -STEP_MAX), STEP_MAX)  # log s += u / J
+    noise[0] = min(max(noise[0] * math.exp(step), scale_min), scale_max)
+    noise[1] = information
+    noise[2] = min(noise[2] + 1.0, window)
 
 
 @_jit
@@ -378,7 +375,7 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     Run every setting over a whole segment, chunk by chunk, adding the big dts it asks for.
 
     ``reported`` (K, N) the variances given, ``noises`` (q_a, q_ℓ, q_c) each (K,),
-    ``state`` (means, covs, probabilities, noise (K, 4), last stamp (K,)) after the first
+    ``state`` (means, covs, probabilities, noise (K, 3), last stamp (K,)) after the first
     fix, ``outputs`` (ℓ (K,), gated count (K,), y, S, gated, scale (K, N − 1)), in place.
     Raises ValueError for a non-finite state (a noise too large).
     """
@@ -456,7 +453,7 @@ def warm_up() -> None:
     count, rows = 1, t.shape[0] - 1
     state = (np.tile(np.array([0.0, 0.0, 0.0, 0.0, 0.8, 0.9]), (count, 4, 1)),
              np.tile(parameters.initial_covariance(1.0), (count, 4, 1, 1)),
-             np.full((count, 4), 0.25), np.array([[1.0, 0.0, 0.0, 0.0]]), np.zeros(count))
+             np.full((count, 4), 0.25), np.array([[1.0, 0.0, 0.0]]), np.zeros(count))
     outputs = (np.zeros(count), np.zeros(count, dtype=np.int64), np.zeros((count, rows)),
                np.zeros((count, rows)), np.zeros((count, rows), dtype=np.bool_),
                np.ones((count, rows)))

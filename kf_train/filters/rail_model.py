@@ -126,7 +126,7 @@ class RailModelParameters:
     """Standard deviation of the velocity at the first measurement [m/s]."""
     initial_acceleration_std_mps2: float = 1.0
     """Standard deviation of a and ℓ at the first measurement [m/s²]."""
-    noise_window: float = 100.0
+    noise_window: float = 50.0
     """Memory of the learned measurement-noise scale [measurements]; 0: R as given."""
     noise_scale_min: float = 1e-3
     """Lower bound of the learned scale on R."""

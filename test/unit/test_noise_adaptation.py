@@ -1,10 +1,12 @@
 """The learned measurement noise (filters.noise_adaptation) and the no-reversal update."""
 
 import dataclasses
+import math
 
 from kf_train.estimator import EstimatorSettings, StreamEstimator
 from kf_train.filters import (
     hold_velocity, make_rail_filter, NoiseAdaptation, NoiseScale, RailModel, RailModelParameters)
+from kf_train.filters.noise_adaptation import CLIP_NIS, CLIPPED_NIS_MEAN, STEP_MAX
 from kf_train.sim.rail import family_parameters, rail_scenario
 import numpy as np
 import pytest
@@ -28,17 +30,42 @@ def test_bad_settings_raise(kwargs):
         NoiseAdaptation(**kwargs)
 
 
-def test_one_step_is_the_weighted_average_written_out():
+def test_one_step_is_the_fisher_scoring_step_written_out():
     rule = NoiseAdaptation(window=100, prior=20)
-    # First fused measurement: the prior s = 1 as 20 measurements of r = 2, then
-    # y² - h = 0.5² - (1.5 - 2) ... with S = 1.5 + 2 (h = 1.5).
+    # First fused measurement, r = 2 with s = 1 and h = 1.5: S = 3.5, a = 2 / 3.5; the
+    # prior's information 20 / 2, forgotten by 1 - 1/100, plus a² / 2.
     first = rule.learn(NoiseScale(), 0.5, 3.5, 2.0)
-    excess = 2.0 + (0.25 - 1.5 - 2.0) / 21.0
-    assert first.excess_m2 == pytest.approx(excess, rel=1e-15)
-    assert first.reported_m2 == 2.0 and first.count == 1
-    assert first.scale == pytest.approx(excess / 2.0, rel=1e-15)
+    a = 2.0 / 3.5
+    information = 10.0 * 0.99 + 0.5 * a * a
+    score = 0.5 * a * (0.25 / 3.5 / CLIPPED_NIS_MEAN - 1.0)
+    assert first.information == pytest.approx(information, rel=1e-15)
+    assert first.count == 1
+    assert first.scale == pytest.approx(math.exp(score / information), rel=1e-15)
+    # A gross fix: its NIS counts as CLIP_NIS, and the step is at most STEP_MAX.
+    gross = rule.learn(first, 1e3, first.scale * 2.0 + 1.5, 2.0)
+    assert gross.scale == pytest.approx(first.scale * math.exp(STEP_MAX), rel=1e-15)
+    late = NoiseScale(0.5, 50.0, 100)
+    a = 0.5 * 2.0 / 2.5
+    information = 50.0 * 0.99 + 0.5 * a * a
+    score = 0.5 * a * (CLIP_NIS / CLIPPED_NIS_MEAN - 1.0)         # below STEP_MAX
+    assert rule.learn(late, 1e3, 2.5, 2.0).scale == pytest.approx(
+        0.5 * math.exp(score / information), rel=1e-15)
+    # The clipped NIS's mean is E[min(χ²₁, 9)] = P(χ²₃ <= 9) + 9 P(χ²₁ > 9).
+    assert CLIPPED_NIS_MEAN == pytest.approx(0.99500728, abs=1e-8)
     # Off: nothing changes.
     assert NoiseAdaptation(window=0).learn(first, 9.0, 1.0, 1.0) is first
+
+
+def test_a_scale_far_too_large_falls_in_log_steps():
+    # Innovations far smaller than R (a cold start's hAcc of a kilometre for fixes a few
+    # metres off): s falls by a whole decade in tens of fixes, where the average of
+    # y² - h this replaced needed hundreds.
+    rule = NoiseAdaptation(window=50, prior=10)
+    state = NoiseScale()
+    for _ in range(60):
+        S = state.scale * 1e5 + 1.0
+        state = rule.learn(state, 3.0, S, 1e5)
+    assert state.scale < 0.1
 
 
 def test_the_scale_stays_within_its_bounds():

@@ -141,7 +141,7 @@ def test_learned_noise_and_gate_nis_follow_the_reference(models):
     for scale in (1e-3, 0.3, 1.0, 100.0):
         for state, dt, z, rng in _random_states(reference, 7, 20):
             state = state._replace(noise=state.noise._replace(
-                scale=scale, excess_m2=2.0 * scale, reported_m2=2.0, count=50))
+                scale=scale, information=20.0, count=50))
             ours, result = fast.update(state, z, [[2.0]])
             theirs, their_result = reference.update(state, z, [[2.0]])
             assert_states_close(ours, theirs)
