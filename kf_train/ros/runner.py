@@ -1,9 +1,10 @@
 """
 The shared ``main()`` of kf_train's nodes: clean exits on Ctrl-C, SIGTERM and bad input.
 
-Ctrl-C reaches ``spin()`` as ``KeyboardInterrupt``; SIGTERM (rclpy's signal handler)
-and a shutdown from elsewhere as ``ExternalShutdownException``. Both end the node with
-exit code 0 and no traceback. An invalid parameter at start-up prints one line naming
+Ctrl-C and SIGTERM shut the context down (rclpy's signal handler), and a shutdown
+from elsewhere does too: ``spin()`` ends with ``ExternalShutdownException``. A Ctrl-C
+before ``rclpy.init`` arrives as ``KeyboardInterrupt``. Each ends the node with exit
+code 0 and no traceback. An invalid parameter at start-up prints one line naming
 the parameter and what it accepts, and exits with code 2.
 """
 
@@ -46,6 +47,7 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
         return _run_other_executor(make_node, args, executor)
     sigint = _InterruptOnce()
     rclpy.init(args=args)
+    sigint.context_shut_down_first = True   # rclpy's handler (init's) comes before it
     node = None
     try:
         node = make_node()
@@ -82,7 +84,7 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
 
 class _InterruptOnce:
     """
-    A node process's SIGINT handler: the first raises KeyboardInterrupt, later ones do not.
+    A node process's SIGINT handler: the first ends the spin, later ones do nothing.
 
     A Ctrl-C in a terminal running ``ros2 launch`` reaches launch and its nodes (one
     process group), and launch then sends each node a SIGINT of its own: without this,
@@ -96,14 +98,24 @@ class _InterruptOnce:
         """Install the handler (main thread only), remembering the one it replaces."""
         self.interrupted = False
         self.previous = None
+        # True once rclpy.init has put its handler before this one (see _on_sigint).
+        self.context_shut_down_first = False
         if threading.current_thread() is threading.main_thread():
             previous = signal.signal(signal.SIGINT, self._on_sigint)
             # None: a handler set outside Python; Python's own is the best stand-in.
             self.previous = signal.default_int_handler if previous is None else previous
 
     def _on_sigint(self, signum, frame) -> None:
-        if not self.interrupted:
-            self.interrupted = True
+        if self.interrupted:
+            return
+        self.interrupted = True
+        # After rclpy.init, rclpy's handler has shut the context down before it calls
+        # this one, and spin() ends at its next wait (ExternalShutdownException). A
+        # KeyboardInterrupt on top of that lands wherever Python is: once (CI) inside
+        # rclpy's Task.__init__ before its fields were set, whose __del__ then printed a
+        # traceback. So it is raised only while the context is still running (before
+        # rclpy.init, or if its handler did not act), as Python's own handler would.
+        if not (self.context_shut_down_first and not rclpy.ok()):
             raise KeyboardInterrupt
 
     def restore(self) -> None:
