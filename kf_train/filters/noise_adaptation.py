@@ -19,8 +19,8 @@ and s follows them by recursive Fisher scoring in log s (Ljung and Söderström 
 
     J ← (1 - 1/window) J + i,    log s ← log s + u / J.
 
-In log s the scale falls by about 1/(a·window) an e-fold a fix once J is full, and
-faster at the start (J = the prior's information); an average of y² − h (covariance
+When the innovations are far smaller than S, log s falls by up to 1/(a·window) a fix
+once J is full, and faster at the start (J = the prior's information); an average of y² − h (covariance
 matching, Mehra 1972, this module's rule until 2026-11-28) falls by e per window only
 once the large lessons of a cold start or of the prior have been forgotten: it kept
 the node's R at hAcc²/4 through a simulated cold start whose fixes were a few metres
