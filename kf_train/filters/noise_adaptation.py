@@ -20,15 +20,15 @@ and s follows them by recursive Fisher scoring in log s (Ljung and Söderström 
     J ← (1 - 1/window) J + i,    log s ← log s + u / J.
 
 When the innovations are far smaller than S, log s falls by up to 1/(a·window) a fix
-once J is full, and faster at the start (J = the prior's information); an average of y² − h (covariance
-matching, Mehra 1972, this module's rule until 2026-11-28) falls by e per window only
-once the large lessons of a cold start or of the prior have been forgotten: it kept
-the node's R at hAcc²/4 through a simulated cold start whose fixes were a few metres
-off for an hAcc of hundreds (the 2-s prediction 70 m behind), and took 400 fixes to
-reach its floor on a clean real log (docs/real-logs.md). Each fix's lesson is weighed
-by its own information, so a fix whose S is mostly the prediction's (the first fixes,
-after a gap) teaches little, and the size of r does not matter: a cold start's hAcc of
-a kilometre says nothing about s until its fixes show it.
+once J is full, and faster at the start (J = the prior's information); an average of
+y² − h (covariance matching, Mehra 1972, this module's rule until 2026-11-28) falls by
+e per window only once the large lessons of a cold start or of the prior have been
+forgotten: it kept the node's R at hAcc²/4 through a simulated cold start whose fixes
+were a few metres off for an hAcc of hundreds (the 2-s prediction 70 m behind), and
+took 400 fixes to reach its floor on a clean real log (docs/real-logs.md). Each fix's
+lesson is weighed by its own information, so a fix whose S is mostly the prediction's
+(the first fixes, after a gap) teaches little, and the size of r does not matter: a
+cold start's hAcc of a kilometre says nothing about s until its fixes show it.
 
 Robust to the gross fixes the gate lets through: a lesson's NIS is taken as at most
 ``CLIP_NIS`` (3σ; divided by E[min(χ²₁, CLIP_NIS)] so that the right s stays the
