@@ -36,7 +36,9 @@ Per log this script
      accuracy), run exactly as ``kf-train replay BAG -o out.csv`` runs it (the node's
      session; a rejected fix's prediction is the newest state's, predicted on);
    * ``CV``, ``CA``: Kalman filters with q and R grid-searched in hindsight on
-     that very log (kf_train.sim.rail_baselines' models), the best RMSE kept;
+     that very log (kf_train.sim.rail_baselines' models), the best RMSE kept (and
+     cached as ``<cache>/anchors/``, keyed by the series and the grids: they do not
+     depend on the node's parameters, so a sweep of those reuses them);
 5. prints one table, the artefacts of each log, and the structure function D(τ) of
    the along-track position minus a smooth reference (a centred local cubic over
    ±REFERENCE_HALF_WINDOW_S, within stretches without gaps): the short-τ texture of
@@ -54,6 +56,7 @@ PyPI sdist does not contain test-data). Figures only, no assertion.
 import argparse
 import csv
 import datetime
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -345,6 +348,20 @@ def tuned(t: np.ndarray, z: np.ndarray, dim: int, q_grid) -> dict:
     return best
 
 
+def tuned_cached(cache: Path, name: str, t: np.ndarray, z: np.ndarray, dim: int,
+                 q_grid) -> dict:
+    """Return :func:`tuned`'s answer, kept in the cache keyed by the series and the grids."""
+    key = hashlib.sha256(b''.join(np.ascontiguousarray(a, dtype=float).tobytes() for a in (
+        t, z, np.asarray(q_grid), np.asarray(R_GRID))) + bytes([dim])).hexdigest()[:16]
+    path = cache / 'anchors' / f'{name}_{dim}_{key}.json'
+    if path.exists():
+        return json.loads(path.read_text())
+    best = tuned(t, z, dim, q_grid)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(best) + '\n')
+    return best
+
+
 def write_bag(series: Dict[str, np.ndarray], facts: dict, path: Path) -> None:
     """Write the series as the simulator's measurement topic, R_FIX_M2 per fix, real stamps."""
     from kf_train.io import bagio_simulation
@@ -474,7 +491,8 @@ def evaluate(name: str, series: Dict[str, np.ndarray], facts: dict, cache: Path,
                         'p_stand_median': float(np.median(p_stand)) if p_stand.size else None,
                         'p_stand_below_half': float(np.mean(p_stand < 0.5))
                         if p_stand.size else None},
-            'CV': tuned(t, z, 2, CV_Q_GRID), 'CA': tuned(t, z, 3, CA_Q_GRID),
+            'CV': tuned_cached(cache, name, t, z, 2, CV_Q_GRID),
+            'CA': tuned_cached(cache, name, t, z, 3, CA_Q_GRID),
             'structure': structure_function(t, z)}
 
 
