@@ -68,6 +68,18 @@ def test_a_scale_far_too_large_falls_in_log_steps():
     assert state.scale < 0.1
 
 
+def test_the_default_prior_lets_the_first_fixes_decide():
+    # A cold start: r = 10⁴ m² for fixes whose scatter calls for s = 10⁻³. The prior
+    # (s = 1) weighs one fix, so after 100 fixes (20 s at 5 Hz) s is within a decade of
+    # 10⁻³; with the old prior of 10 fixes it was 0.033.
+    state, r = NoiseScale(), 1e4
+    for _ in range(100):
+        S = state.scale * r + 1.0
+        state = NoiseAdaptation(window=50).learn(state, math.sqrt(1e-3 * r + 1.0), S, r)
+    assert state.scale < 0.01
+    assert NoiseAdaptation().prior == 1
+
+
 def test_the_scale_stays_within_its_bounds():
     rule = NoiseAdaptation(window=10, prior=1, scale_min=0.1, scale_max=10.0)
     state = NoiseScale()
