@@ -7,7 +7,8 @@ mode-by-mode algorithm, transcribed, for test/unit/test_imm_stack.py to compare 
 It builds its regimes from the same public pieces (relaxation_transition,
 relaxation_noise, the parameters) and runs them through kf_train.filters.kalman.
 Only the class names differ (ReferenceIMM, ReferenceRailModel). Added since: the
-no-reversal projection of each regime's updated mean (rail_model.hold_velocity),
+acceleration bound and no-reversal projection of each regime's updated mean
+(rail_model.bound_acceleration, hold_velocity),
 written out regime by regime; the learned noise scale is not here, so the tests
 compare with a RailModel whose noise_window is 0.
 """
@@ -21,7 +22,8 @@ from kf_train.filters.kalman import UpdateResult
 from kf_train.filters.models import LinearModel
 from kf_train.filters.rail_dynamics import _phi, relaxation_noise, relaxation_transition
 from kf_train.filters.rail_model import (
-    ACCELERATE, BRAKE, CRUISE, DIM_X, MODE_NAMES, RailModelParameters, STAND, STATE_NAMES)
+    ACCELERATE, ACCELERATION_LIMIT_MPS2, BRAKE, CRUISE, DIM_X, MODE_NAMES, RailModelParameters,
+    STAND, STATE_NAMES)
 from kf_train.filters.validation import as_covariance, as_duration, as_vector
 import numpy as np
 
@@ -273,10 +275,16 @@ class ReferenceRailModel(ReferenceIMM):
         return self._rates.matrix(dt_s, rates)
 
     def update(self, state: IMMState, z, R=None) -> Tuple[IMMState, UpdateResult]:
-        """Return the IMM update, each regime's negative mean velocity projected onto 0."""
+        """Return the IMM update, each regime's mean bounded in a, then held at v >= 0."""
         state, result = super().update(state, z, R)
         means = np.array(state.means)
         for j in range(means.shape[0]):
+            a, P = means[j, 2], state.covariances[j]
+            limit = min(max(a, -ACCELERATION_LIMIT_MPS2), ACCELERATION_LIMIT_MPS2)
+            if a != limit:
+                if P[2, 2] > 0.0:
+                    means[j] = means[j] - P[:, 2] * ((a - limit) / P[2, 2])
+                means[j, 2] = limit
             if means[j, 1] < 0.0:
                 P = state.covariances[j]
                 if P[1, 1] > 0.0:

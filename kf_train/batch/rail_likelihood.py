@@ -21,8 +21,9 @@ with numerical gradients and a curvature needs dozens of them. :func:`rail_log_l
 runs K settings at once instead: the same equations as
 :class:`~kf_train.filters.RailModel` and :mod:`kf_train.filters.imm_stack` (mixing with
 the regimes' entry transformation, the state-dependent brake → stand rate, x⁻ = F x,
-P⁻ = F P Fᵀ + Q, the Joseph-form scalar update, no velocity below 0
-(:func:`~kf_train.filters.rail_model.hold_velocity`), the posterior in the log domain),
+P⁻ = F P Fᵀ + Q, the Joseph-form scalar update, |a| within its bound and no velocity
+below 0 (:mod:`~kf_train.filters.rail_model`'s ``bound_acceleration`` and
+``hold_velocity``), the posterior in the log domain),
 with one more leading axis for the settings, so one pass costs little more than one
 run. The tests hold it to the node's classes (RailModel.predict/update, and the
 StreamEstimator) to 1e-9 relative on simulated runs.
@@ -62,8 +63,9 @@ from typing import NamedTuple, Optional, Sequence
 from kf_train import filters
 from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
-    first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES, NoiseAdaptation, NoiseScale,
-    numba_available, RailModel, RailModelParameters, RateTransition, stop_probability, STOPPING)
+    bound_acceleration, first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES, NoiseAdaptation,
+    NoiseScale, numba_available, RailModel, RailModelParameters, RateTransition,
+    stop_probability, STOPPING)
 import numpy as np
 
 STAND = MODE_NAMES.index('stand')
@@ -343,7 +345,7 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
                                                       probabilities)
         R = np.where(scale == 1.0, r, r * scale)                     # noise_in_use: s r
         x, P, y, s = _update(predicted_x, predicted_P, float(z[k + 1]), R, identity)
-        x = hold_velocity(x, P)                                       # no reversal
+        x = hold_velocity(bound_acceleration(x, P), P)                # |a| bound, no reversal
         ll, posterior = _mixture_log_likelihood(cbar, y, s)
         ybar = np.einsum('kj,kj->k', cbar, y)                        # y = z − Σ c̄_j ẑ_j
         d = y - ybar[:, None]

@@ -44,8 +44,8 @@ from kf_train.filters.particle import (
 from kf_train.filters.rail_fast import (
     FastRailModel, jit_enabled, JIT_VARIABLE, numba_available, rail_model)
 from kf_train.filters.rail_model import (
-    hold_velocity, make_rail_filter, MODE_NAMES, RailModel, RailModelParameters, STATE_NAMES,
-    stop_probability, STOPPING)
+    bound_acceleration, hold_velocity, make_rail_filter, MODE_NAMES, RailModel,
+    RailModelParameters, STATE_NAMES, stop_probability, STOPPING)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
     RegularisedSnapshot, tempering_step)
@@ -69,7 +69,8 @@ __all__ = [
     'ExtendedModel', 'FastRailModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter',
     'FILTER_KINDS', 'first_jump_row',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
-    'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'jit_enabled', 'JIT_VARIABLE', 'kalman',
+    'bound_acceleration', 'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'jit_enabled',
+    'JIT_VARIABLE', 'kalman',
     'KalmanFilter', 'keep_positive_definite',
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',

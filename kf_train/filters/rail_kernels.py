@@ -3,12 +3,13 @@ The rail IMM's array arithmetic as loops, for numba to compile: one call per ste
 
 The numpy reference (:mod:`kf_train.filters.imm_stack`, :mod:`kf_train.filters.rail_mixing`,
 :meth:`kf_train.filters.rail_model.RailModel.transition`,
-:func:`kf_train.filters.rail_model.hold_velocity`) spends a step in about 125 numpy calls
-on 4 x 6 x 6 stacks, each costing more than its arithmetic. These functions do the same
-equations, in the same order, as plain loops over floats, which numba compiles
-(:mod:`kf_train.filters.rail_fast`): a prediction, an update and a combination are one
-call each. numba is optional: :mod:`kf_train.filters` loads this module on first use
-only (its ``_LAZY``), and each kernel's uncompiled Python is its ``py_func``.
+:func:`kf_train.filters.rail_model.hold_velocity` and ``bound_acceleration``) spends a step
+in about 125 numpy calls on 4 x 6 x 6 stacks, each costing more than its arithmetic.
+These functions do the same equations, in the same order, as plain loops over floats,
+which numba compiles (:mod:`kf_train.filters.rail_fast`): a prediction, an update and a
+combination are one call each. numba is optional: :mod:`kf_train.filters` loads this
+module on first use only (its ``_LAZY``), and each kernel's uncompiled Python is its
+``py_func``.
 Compiled code is cached on disk (``cache=True``); ``error_model='numpy'`` keeps IEEE
 division (as numpy's) instead of raising.
 The entry rule is the reference's own gather tables (:class:`~kf_train.filters.rail_mixing.
@@ -18,6 +19,9 @@ to it); a status code reports what the reference raises for (``OK`` otherwise).
 
 import math
 
+# numba freezes this global when it compiles, and its disk cache is keyed by this
+# file: the tests hold the kernels to rail_model's bound_acceleration beyond the limit.
+from kf_train.filters.rail_model import ACCELERATION_LIMIT_MPS2
 import numba
 import numpy as np
 
@@ -205,8 +209,8 @@ def update(means, covs, probabilities, z, selected, R, out_x, out_P, out_posteri
 
     Each mode's Joseph-form update (out_x, out_P), the posterior in the log domain
     (out_posterior), the moment-matched innovation of the prior mixture (returned:
-    (y, S, NIS, status); its gain in out_gain), and no mode's mean velocity below 0
-    (hold_velocity).
+    (y, S, NIS, status); its gain in out_gain), each mode's mean acceleration within
+    its bound (bound_acceleration) and no mode's mean velocity below 0 (hold_velocity).
     """
     count, n = means.shape
     y_modes, s_modes = np.empty(count), np.empty(count)
@@ -233,6 +237,7 @@ def update(means, covs, probabilities, z, selected, R, out_x, out_P, out_posteri
         return 0.0, 0.0, 0.0, status
     _posterior(probabilities, logs, out_posterior)
     y, S, nis = _mixture_innovation(probabilities, means, y_modes, s_modes, gains, out_gain)
+    bound_acceleration(out_x, out_P)
     hold_velocity(out_x, out_P)
     return y, S, nis, status
 
@@ -344,6 +349,21 @@ def _mixture_innovation(c, means, y_modes, s_modes, gains, gain):
                 c[j] * (y_modes[j] - y) * (means[j, a] - x_bar)
         gain[a] = total / S                                   # K = P_xz / S
     return y, S, y * (y / S)
+
+
+@_jit
+def bound_acceleration(means, covs):
+    """Project every mean acceleration beyond ±the limit onto it along its covariance."""
+    count, n = means.shape
+    for j in range(count):
+        a = means[j, 2]
+        limit = min(max(a, -ACCELERATION_LIMIT_MPS2), ACCELERATION_LIMIT_MPS2)
+        if a != limit:
+            variance = covs[j, 2, 2]
+            shift = (a - limit) / variance if variance > 0.0 else 0.0
+            for b in range(n):
+                means[j, b] -= covs[j, b, 2] * shift          # x - P e Δa / P_aa
+            means[j, 2] = limit
 
 
 @_jit

@@ -11,10 +11,11 @@ the numpy reference ~550 µs a row for one setting, 82 µs a row and setting for
 benchmarks/tune_rail_cost.py, 2026-11-28).
 
 What is reused: F(dt) and Q(dt) are :mod:`kf_train.filters.rail_kernels`' ``dynamics``
-(the series up to 1.5 τ), Π(dt) its ``transition``, the no-reversal rule its
-``hold_velocity``, the constants :class:`~kf_train.filters.FastRailModel`'s and the entry
-rule's (:class:`~kf_train.filters.rail_mixing.EntryGather`). The step itself is written
-for this job, the same equations as rail_kernels' ``predict`` and ``update`` with their
+(the series up to 1.5 τ), Π(dt) its ``transition``, the no-reversal rule and the
+acceleration bound its ``hold_velocity`` and ``bound_acceleration``, the constants
+:class:`~kf_train.filters.FastRailModel`'s and the entry rule's
+(:class:`~kf_train.filters.rail_mixing.EntryGather`). The step itself is written for this
+job, the same equations as rail_kernels' ``predict`` and ``update`` with their
 zeros skipped: the entry changes only ℓ's row and column, every regime's F is
 diag(G, I₂), H = e₀, and P is symmetric, so a step costs ~4 µs where the general
 kernels cost ~13 µs (the tests hold the two engines to each other, and the numpy one to
@@ -38,7 +39,7 @@ from kf_train.filters.noise_adaptation import (
 from kf_train.filters.rail_dynamics import RelaxationNoise
 from kf_train.filters.rail_fast import FastRailModel
 from kf_train.filters.rail_kernels import (
-    dynamics, hold_velocity, LOG_2PI, NON_FINITE, OK, transition)
+    bound_acceleration, dynamics, hold_velocity, LOG_2PI, NON_FINITE, OK, transition)
 from kf_train.filters.rail_model import RailModel, RailModelParameters
 import numba
 import numpy as np
@@ -207,7 +208,8 @@ def _update(means, covs, c, z, R, out_x, out_P, out_posterior, logs):
     rail_kernels.update's equations for H = e₀: y_j = z − x_j0, s_j = P_j00 + R,
     K = P_j[0] / s_j, the Joseph form (I − K e₀ᵀ) P (I − K e₀ᵀ)ᵀ + K R Kᵀ written out
     (its zero terms skipped), the posterior in the log domain, the mixture's (y, S), and
-    no mean velocity below 0 (rail_kernels' ``hold_velocity``).
+    the acceleration bound and no mean velocity below 0 (rail_kernels'
+    ``bound_acceleration`` and ``hold_velocity``).
     """
     count, n = means.shape
     y = 0.0
@@ -239,6 +241,7 @@ def _update(means, covs, c, z, R, out_x, out_P, out_posterior, logs):
         mass += out_posterior[j]
     for j in range(count):
         out_posterior[j] = out_posterior[j] / mass                  # μ_j ∝ c̄_j Λ_j
+    bound_acceleration(out_x, out_P)
     hold_velocity(out_x, out_P)
     return y, S, top + math.log(mass)
 

@@ -71,6 +71,12 @@ STOPPING = (ACCELERATE, CRUISE, BRAKE)
 """The regimes a slow train may stop from: braking to a halt, or 'cruising' at a crawl
 (a train that holds no speed is standing, whatever the regime it came from)."""
 VELOCITY = STATE_NAMES.index('velocity')
+ACCELERATION = STATE_NAMES.index('acceleration')
+ACCELERATION_LIMIT_MPS2 = 3.0
+"""No train accelerates or brakes harder [m/s²]: traction gives up to ~1.3 m/s², service
+brakes ~1, emergency brakes 1.2-1.5 on main lines and up to ~2.7 on trams with track
+brakes. A regime mean beyond it is a receiver's jump read as motion
+(:func:`bound_acceleration`)."""
 _H = np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
 _CACHE_SIZE = 64
 
@@ -229,6 +235,32 @@ def stop_probability(v, std, stop_speed_mps: float):
         _normal_cdf((stop_speed_mps - v) / std)
 
 
+def bound_acceleration(means: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """
+    Return the means with every acceleration beyond ±ACCELERATION_LIMIT_MPS2 projected onto it.
+
+    A receiver's along-track jump of a few metres, fused at a regime's onset, reads as
+    an acceleration of 10 m/s² or more: on a real log (tp-lib 29584) one such fix made
+    a regime's mean 78 m/s and 14 m/s², its next 2-s predictions hundreds of metres off.
+    As :func:`hold_velocity` does for v < 0, such a mean is moved to the limit along
+    its own covariance, x - P e (a - a_limit) / P_aa (the conditional mean given the
+    limit; Simon 2010), so position and velocity move with it; P is kept. ``means``
+    itself is returned when every acceleration is within the limit.
+    """
+    acceleration = means[..., ACCELERATION]
+    if not np.abs(acceleration).max() > ACCELERATION_LIMIT_MPS2:
+        return means
+    column = covariances[..., :, ACCELERATION]                           # P e
+    variance = column[..., ACCELERATION]                                 # P_aa
+    limit = np.clip(acceleration, -ACCELERATION_LIMIT_MPS2, ACCELERATION_LIMIT_MPS2)
+    beyond = acceleration != limit
+    shift = np.where(beyond & (variance > 0.0),
+                     (acceleration - limit) / np.where(variance > 0.0, variance, 1.0), 0.0)
+    bounded = means - column * shift[..., None]                       # x - P e Δa / P_aa
+    bounded[..., ACCELERATION] = limit
+    return bounded
+
+
 def hold_velocity(means: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     """
     Return the means with every mean velocity below 0 projected onto v = 0: THE rule.
@@ -359,7 +391,7 @@ class RailModel(IMM):
         return self._entry.enter(j, x, P)
 
     def update(self, state: IMMState, z, R=None):
-        """Return the IMM's update, no regime's mean velocity below 0 (:func:`hold_velocity`)."""
+        """Return the IMM's update, every regime's motion held (:meth:`_held`)."""
         return self._held(*super().update(state, z, R))
 
     def update_component(self, state: IMMState, z, R, index: int):
@@ -380,8 +412,9 @@ class RailModel(IMM):
 
     @staticmethod
     def _held(state: IMMState, result):
-        """Return (state with no regime's mean velocity below 0, result)."""
-        means = hold_velocity(state.means, state.covariances)
+        """Return (state, result), each regime's mean bounded in a then held at v >= 0."""
+        means = hold_velocity(bound_acceleration(state.means, state.covariances),
+                              state.covariances)
         if means is not state.means:
             means.flags.writeable = False
             state = state._replace(means=means)
