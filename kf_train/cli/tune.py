@@ -31,7 +31,9 @@ same columns, plus optional truth columns ``true_<state>``; or a rosbag2 bag (a
 directory, ``.mcap`` or ``.db3``), its topics chosen as ``kf-train replay BAG`` chooses
 them (``--topic``, ``--control-topic``), truth from ``--truth-topic`` (default
 ``ground_truth`` when there). A table does not carry the measurements' variance, so R
-is estimated unless ``--fix-r`` gives it. A bag does: when every message carries the
+is estimated unless ``--fix-r`` gives it (for the rail preset, whose node learns a scale
+on R online, R is its second differences' estimate, the scale's start, and is fitted only
+with ``--estimate-r``). A bag does: when every message carries the
 same variance, that is R (the node uses the message's variance) and q alone is
 estimated, unless ``--estimate-r``; when the variances vary, one R is estimated (for
 the rail preset, the rows' own variances are used, as the node uses them).
@@ -122,7 +124,8 @@ def _parser() -> argparse.ArgumentParser:
                           "(default: 'ground_truth' if the bag has it)")
     bag.add_argument('--estimate-r', action='store_true',
                      help='estimate R even though the messages carry a variance (the '
-                          "sensor's stated covariance is a guess)")
+                          "sensor's stated covariance is a guess), or for the rail preset "
+                          'on a table, although its node learns a scale on R online')
     return parser
 
 

@@ -49,6 +49,13 @@ Window = Optional[Tuple[float, float]]
 """The times [start, end) [s] whose predictions are scored; None: none of the segment's."""
 WORSE_TOLERANCE = 2e-3
 """RMSEs within this share (0.2 %, below the report's 3 digits) are a tie (the start kept)."""
+GAIN_BLOCK_S = 10.0
+"""The held-out gain is judged in blocks of this many seconds of predictions: 2-s
+predictions made 0.2-0.4 s apart overlap, and a receiver's error is correlated over
+seconds (docs/real-logs.md, D(τ)), so one prediction's gain is not independent of the
+next's; blocks of 10 s nearly are."""
+GAIN_SIGMAS = 2.0
+"""A tuned setting is written only if its held-out gain exceeds this many standard errors."""
 NIS_FACTOR = 10.0
 """A tuned model whose mean NIS is off by more than this factor (its 2σ band √10 ≈ 3.2×
 too wide or too narrow), and further off than the start's, is refused: see
@@ -85,6 +92,10 @@ class SettingScore(NamedTuple):
     """Fixes the χ² gate rejected, in the windows."""
     mean_nis: float
     """Mean NIS of the fixes fused in the windows (NaN: none)."""
+    errors_m: Optional[np.ndarray] = None
+    """Each scored prediction's error against the later fix [m], the windows in order."""
+    blocks: Optional[np.ndarray] = None
+    """Each scored prediction's block (its segment, and GAIN_BLOCK_S of its window)."""
 
 
 def split_holdout(segments: Sequence[Segment], fraction: float = DEFAULT_HOLDOUT) -> Holdout:
@@ -266,12 +277,17 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
     """
     windows = warm_windows(segments) if windows is None else windows
     jit = numba_available() if jit is None else jit
-    fixes, truth, nis = [], [], []
+    fixes, truth, nis, errors, blocks = [], [], [], [], []
     gated = resets = reacquired = 0
-    for s, scored, run in _runs(preset, segments, windows, variances, measurement_variance,
-                                settings, jit):
+    for k, (s, scored, run) in enumerate(_runs(preset, segments, windows, variances,
+                                               measurement_variance, settings, jit)):
         fixes.append(later_fix_score(s.t_s, s.z[:, 0], run.mean, run.variance, run.r_m2,
                                      scored))
+        target, valid = later_fix(s.t_s, s.z[:, 0])     # the rows later_fix_score scores
+        rows = scored & valid
+        errors.append(run.mean[rows] - target[rows])
+        t = s.t_s[rows]
+        blocks.append(k * 2 ** 32 + np.floor((t - t[:1]) / GAIN_BLOCK_S).astype(np.int64))
         if s.truth is not None:
             target, valid = later_fix(s.t_s, s.truth[:, 0])
             use = scored & valid & np.isfinite(target)
@@ -289,7 +305,9 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
     return SettingScore(rmse, coverage, count,
                         float(np.sqrt(np.mean(truth))) if truth.size else None,
                         resets, reacquired, gated,
-                        float(np.mean(nis)) if nis.size else math.nan)
+                        float(np.mean(nis)) if nis.size else math.nan,
+                        np.concatenate(errors) if errors else np.empty(0),
+                        np.concatenate(blocks) if blocks else np.empty(0, dtype=np.int64))
 
 
 class Comparison(NamedTuple):
@@ -322,6 +340,26 @@ def comparison_lines(comparison: Comparison) -> List[str]:
     return lines
 
 
+def held_out_gain(before: SettingScore, after: SettingScore) -> Optional[Tuple[float, float]]:
+    """
+    Return (gain, its standard error) [m²]: Σ e_before² − e_after² over the same predictions.
+
+    The gain is summed per block (GAIN_BLOCK_S of one segment's predictions); its
+    standard error is √(blocks · the blocks' sample variance), the blocks taken as
+    independent. None when the two were not scored on the same predictions or there
+    are fewer than 2 blocks.
+    """
+    if (before.errors_m is None or after.errors_m is None
+            or before.errors_m.shape != after.errors_m.shape
+            or not np.array_equal(before.blocks, after.blocks)):
+        return None
+    _, block = np.unique(before.blocks, return_inverse=True)
+    if block.size == 0 or block.max() < 1:
+        return None
+    sums = np.bincount(block, weights=before.errors_m ** 2 - after.errors_m ** 2)
+    return float(sums.sum()), float(math.sqrt(sums.size * np.var(sums, ddof=1)))
+
+
 def worse_reason(comparison: Comparison) -> Optional[str]:
     """
     Return why the tuned setting is worse than the start there, or None.
@@ -329,7 +367,10 @@ def worse_reason(comparison: Comparison) -> Optional[str]:
     Worse: a 2-s RMSE against the later fix, or against the truth where there is truth,
     larger by more than WORSE_TOLERANCE, or more lock-outs (resets and reacquisitions).
     A tie against the later fix (within WORSE_TOLERANCE) is refused too: without a gain
-    there, the start is kept (a change that only might help is not worth the risk).
+    there, the start is kept (a change that only might help is not worth the risk); so
+    is a gain within GAIN_SIGMAS standard errors of the held-out part's own scatter
+    (:func:`held_out_gain`): on tp-lib's logs the three tunes that made the next log
+    worse had held-out gains of 0.5-1.1 standard errors (docs/rail.md).
     """
     b, a = comparison.before, comparison.after
     if not b.count:
@@ -340,6 +381,12 @@ def worse_reason(comparison: Comparison) -> Optional[str]:
     if a.rmse_m >= b.rmse_m * (1.0 - WORSE_TOLERANCE):
         return (f'on {comparison.label} the tuned setting predicts no better (2-s RMSE '
                 f'{_m(a.rmse_m)} against {_m(b.rmse_m)}, within {100 * WORSE_TOLERANCE:g} %)')
+    gain = held_out_gain(b, a)
+    if gain is not None and not gain[0] > GAIN_SIGMAS * gain[1]:
+        return (f'on {comparison.label} the tuned setting predicts better (2-s RMSE '
+                f'{_m(a.rmse_m)} against {_m(b.rmse_m)}), but within the noise: a gain '
+                f'of {gain[0]:.4g} m² in Σ error², under {GAIN_SIGMAS:g} standard errors '
+                f'({GAIN_SIGMAS * gain[1]:.4g} m², from blocks of {GAIN_BLOCK_S:g} s)')
     if (b.truth_rmse_m is not None and a.truth_rmse_m is not None
             and a.truth_rmse_m > b.truth_rmse_m * (1.0 + WORSE_TOLERANCE)):
         return (f'on {comparison.label} the tuned setting predicts the truth worse (2-s '

@@ -127,21 +127,21 @@ def test_tune_rail_from_a_csv_writes_a_tuned_rail_preset(tuned_csv):
     code, text, path = tuned_csv
     assert code == 0, text
     assert 'preset rail (rail IMM)' in text
-    for label in ('acceleration_noise', 'command_noise', 'measurement_variance',
-                  'NIS, mean of', '2-s RMSE against the truth', '2σ coverage'):
+    for label in ('acceleration_noise', 'command_noise', 'NIS, mean of',
+                  '2-s RMSE against the truth', '2σ coverage'):
         assert label in text, label
     assert '--force: written although' in text and 'predicts no better' in text
     params = _params(path)
     assert set(params) == {'preset', 'measurement_variance'}   # a table carries no R
     preset = resolve_preset(params['preset'])
     assert isinstance(preset, RailPreset) and preset.name == 'rail-tuned'
-    # R: the node learns a scale on R online (noise_window), and tune maximises the
-    # node's likelihood, so R is weakly identified: its 95 % interval holds the truth, 1,
-    # and is narrower than a factor of 10 (1800 fixes, 1350 of them in the fit).
-    row = next(line for line in text.splitlines() if 'measurement_variance [m²]' in line)
-    low, high = (float(v) for v in row.split('[')[2].split(']')[0].split(','))
-    assert low <= 1.0 <= high and high / low < 10.0, row
-    assert low <= params['measurement_variance'] <= high
+    # R: the node learns a scale on R online (noise_window), so R sets only where the
+    # scale starts and is not fitted (its interval missed the truth on 2 of 3 seeds):
+    # the second differences' estimate is written. Its relative sd at 1,350 fixes is
+    # ~√(2/1350)·√(22/6) ≈ 7 %; 0.75-1.33 is over 3 of them around the truth, 1.
+    assert 'R is not fitted: the node learns a scale on it online' in text
+    assert 'measurement_variance [m²]' not in text           # no row: not an estimate
+    assert 0.75 <= params['measurement_variance'] <= 1.33
     # The preset keeps σ = √R: R comes back through a square root and a square (2 ulps).
     assert preset.R[0, 0] == pytest.approx(params['measurement_variance'], rel=1e-15)
     after = text.split('NIS, mean of')[1].split('\n')[0]
@@ -344,3 +344,13 @@ def test_noises_the_data_carry_are_found_from_a_start_100x_too_small():
     assert q_l.low <= 3e-4 <= q_l.high
     assert q_a.low <= 3e-3 <= q_a.high
     assert R.low <= 1.0 <= R.high
+
+
+def test_estimate_r_fits_a_tables_r_although_the_node_learns_its_scale(runs, capsys):
+    assert tune_main([str(runs / 'run.csv'), '-o', str(runs / 'with-r.yaml'), '--force',
+                      '--estimate-r']) == 0
+    text = capsys.readouterr().out
+    assert 'measurement_variance [m²]' in text and 'R is not fitted' not in text
+    row = next(line for line in text.splitlines() if 'measurement_variance [m²]' in line)
+    assert _params(runs / 'with-r.yaml')['measurement_variance'] == pytest.approx(
+        float(row.split()[3]), rel=1e-3)                      # the estimate, 4 digits

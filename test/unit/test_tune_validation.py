@@ -12,8 +12,9 @@ from kf_train.presets import load_rail_preset, rail_preset_from_mapping
 from kf_train.sim.rail import rail_scenario
 from kf_train.tune import rail as tune_rail_module, validation as validation_module
 from kf_train.tune.validation import (
-    inconsistent_reason, MIN_SPLIT_S, model_verdict, NIS_FACTOR, node_settings,
-    rail_preset_yaml, score_setting, split_holdout)
+    Comparison, GAIN_SIGMAS, held_out_gain, inconsistent_reason, MIN_SPLIT_S, model_verdict,
+    NIS_FACTOR, node_settings, rail_preset_yaml, score_setting, SettingScore, split_holdout,
+    worse_reason)
 import numpy as np
 import pytest
 import yaml
@@ -101,7 +102,18 @@ def test_score_setting_is_the_node_estimator_run_by_hand():
     assert found.mean_nis == pytest.approx(np.mean(nis), rel=1e-12)
     assert found.resets == found.reacquisitions == 0
     # The same preset given as an object (written to a file the node reads) scores alike.
-    assert score_setting(load_rail_preset(), [segment], [window]) == found
+    again = score_setting(load_rail_preset(), [segment], [window])
+    assert _figures(again) == _figures(found)
+    np.testing.assert_array_equal(again.errors_m, found.errors_m)
+    np.testing.assert_array_equal(again.blocks, found.blocks)
+    # The errors kept for the gain's test are those the RMSE is of, blocked by 10 s.
+    np.testing.assert_allclose(found.errors_m, error, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(found.blocks, np.floor((t[made] - t[made][0]) / 10.0))
+
+
+def _figures(score):
+    """Return a SettingScore without its per-prediction arrays (comparable with ==)."""
+    return score._replace(errors_m=None, blocks=None)
 
 
 def _metro_minute():
@@ -135,8 +147,10 @@ def test_the_scoring_runs_the_compiled_rail_model_where_numba_is(models_run):
     # The compiled model is the reference's to a norm-wise relative 1e-9 per step
     # (test_rail_fast.py) on states of positions below ~1 km here: the predictions
     # agree within ~1e-6 m, the RMSEs (~1 m) as closely; 1e-5 leaves a margin of 10.
-    assert compiled._replace(rmse_m=0.0, coverage=0.0, truth_rmse_m=0.0, mean_nis=0.0) == \
-        reference._replace(rmse_m=0.0, coverage=0.0, truth_rmse_m=0.0, mean_nis=0.0)
+    assert _figures(compiled)._replace(rmse_m=0.0, coverage=0.0, truth_rmse_m=0.0,
+                                       mean_nis=0.0) == \
+        _figures(reference)._replace(rmse_m=0.0, coverage=0.0, truth_rmse_m=0.0, mean_nis=0.0)
+    np.testing.assert_allclose(compiled.errors_m, reference.errors_m, rtol=0, atol=1e-5)
     assert compiled.rmse_m == pytest.approx(reference.rmse_m, abs=1e-5)
     assert compiled.truth_rmse_m == pytest.approx(reference.truth_rmse_m, abs=1e-5)
     assert compiled.coverage == pytest.approx(reference.coverage, abs=1.0 / compiled.count)
@@ -238,6 +252,38 @@ def test_the_verdict_says_which_way_the_noise_is_wrong():
         'the noise is set larger than the data show')
     assert model_verdict(_report(white, 2.0))[-1].endswith(
         'the noise is set smaller than the data show')
+
+
+def _scored(errors: np.ndarray, blocks: np.ndarray) -> SettingScore:
+    """Return a SettingScore of these errors (its other figures made up, no truth)."""
+    return SettingScore(float(np.sqrt(np.mean(errors ** 2))), 0.95, errors.size, None, 0, 0,
+                        0, 1.0, errors, blocks)
+
+
+def test_a_gain_within_the_held_out_noise_is_refused_and_a_clear_one_is_not():
+    rng = np.random.default_rng(14)     # a draw where the smaller RMSE is chance
+    blocks = np.repeat(np.arange(30), 50)                    # 30 blocks of 50 predictions
+    common = rng.standard_normal(blocks.size)                 # the errors both share
+    before = _scored(common + 0.3 * rng.standard_normal(blocks.size), blocks)
+    # Errors of their own, a little smaller on the whole but not block by block: the
+    # RMSE is below the tie's 0.2 %, the gain within 2 standard errors: refused.
+    slight = _scored(common + 0.27 * rng.standard_normal(blocks.size), blocks)
+    assert slight.rmse_m < 0.99 * before.rmse_m
+    gain, error = held_out_gain(before, slight)
+    assert gain == pytest.approx(np.sum(before.errors_m ** 2 - slight.errors_m ** 2))
+    sums = np.bincount(blocks, weights=before.errors_m ** 2 - slight.errors_m ** 2)
+    assert error == pytest.approx(math.sqrt(30 * np.var(sums, ddof=1)))
+    assert 0.0 < gain < GAIN_SIGMAS * error
+    reason = worse_reason(Comparison('held-out', before, slight))
+    assert reason is not None and 'but within the noise' in reason
+    # The same gain in every block (the shared error removed): written.
+    clear = _scored(common, blocks)
+    assert held_out_gain(before, clear)[0] > GAIN_SIGMAS * held_out_gain(before, clear)[1]
+    assert worse_reason(Comparison('held-out', before, clear)) is None
+    # Not the same predictions, or one block: no test (the other rules still apply).
+    assert held_out_gain(before, _scored(common[:-1], blocks[:-1])) is None
+    one = np.zeros(blocks.size, dtype=np.int64)
+    assert held_out_gain(_scored(before.errors_m, one), _scored(common, one)) is None
 
 
 def test_a_tuned_model_far_less_consistent_than_its_start_is_refused():
