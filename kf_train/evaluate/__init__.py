@@ -13,7 +13,8 @@ from kf_train.evaluate.compare import (
     run_comparison)
 from kf_train.evaluate.compare_rail import run_rail_comparison
 from kf_train.evaluate.later_fix import (
-    later_fix, LaterFixScore, MATCH_TOLERANCE_S, MAX_BRACKET_S, score as later_fix_score)
+    errors as later_fix_errors, later_fix, LaterFixErrors, LaterFixScore, MATCH_TOLERANCE_S,
+    MAX_BRACKET_S, score as later_fix_score)
 from kf_train.evaluate.scores import (
     anees_bounds, Comparison, CONFIDENCE, derived_seed, FilterSummary, nees, summarise,
     write_curves)
@@ -21,6 +22,6 @@ from kf_train.evaluate.scores import (
 __all__ = [
     'anees_bounds', 'Comparison', 'CONFIDENCE', 'DEFAULT_COMPARE_PARTICLES', 'DEFAULT_RUNS',
     'default_kinds', 'derived_seed', 'FilterSummary', 'INITIAL_MODES', 'later_fix',
-    'later_fix_score', 'LaterFixScore', 'MATCH_TOLERANCE_S', 'MAX_BRACKET_S', 'nees',
+    'later_fix_errors', 'later_fix_score', 'LaterFixErrors', 'LaterFixScore', 'MATCH_TOLERANCE_S', 'MAX_BRACKET_S', 'nees',
     'position_indices', 'run_comparison', 'run_rail_comparison', 'summarise', 'write_curves',
 ]

@@ -5,7 +5,8 @@ A prediction made at a fix's stamp t for t + horizon is compared with the fix at
 t + horizon: the one within :data:`MATCH_TOLERANCE_S` of it, else the straight line
 between the two fixes around it, when those are at most :data:`MAX_BRACKET_S` apart
 (a wider gap leaves the prediction unscored: the train may have done anything in
-it). :func:`score` gives the RMSE and the 2σ coverage of the predictions made from
+it). :func:`errors` gives each scored prediction's error and whether it lies inside
+its 2σ band, and :func:`score` their RMSE and coverage, for the predictions made from
 a warm-up on (or those a mask chooses), the band being the prediction's variance
 plus the later fix's R (the fix is no truth: its own noise is part of the error).
 """
@@ -57,16 +58,35 @@ def later_fix(t: np.ndarray, z: np.ndarray, horizon_s: float = RAIL_HORIZON_S
     return _at_goal(z, left, right, weight, exact), valid
 
 
-def score(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
-          r_m2: Union[float, np.ndarray], made: Optional[np.ndarray] = None,
-          horizon_s: float = RAIL_HORIZON_S) -> LaterFixScore:
+class LaterFixErrors(NamedTuple):
+    """The scored predictions' errors against the later fix, and which were inside the band."""
+
+    error_m: np.ndarray
+    """(K,): prediction minus the later fix, of the scored predictions in order."""
+    covered: np.ndarray
+    """(K,) bool: the error within 2σ (the prediction's variance plus the later fix's R)."""
+    scored: np.ndarray
+    """(N,) bool: which predictions were scored (made as asked, a later fix to score them)."""
+
+    def summary(self) -> LaterFixScore:
+        """Return the RMSE, 2σ coverage and count (NaN figures when none is scored)."""
+        count = int(self.error_m.size)
+        if not count:
+            return LaterFixScore(float('nan'), float('nan'), 0)
+        return LaterFixScore(float(np.sqrt(np.mean(self.error_m ** 2))),
+                             float(np.mean(self.covered)), count)
+
+
+def errors(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
+           r_m2: Union[float, np.ndarray], made: Optional[np.ndarray] = None,
+           horizon_s: float = RAIL_HORIZON_S) -> LaterFixErrors:
     """
-    Return the RMSE, 2σ coverage and count of the predictions against the later fix.
+    Return the errors of the predictions against the later fix, and their 2σ band's verdict.
 
     ``mean``, ``variance`` (N,): the prediction made at each fix for t + horizon;
     ``r_m2``: the fixes' variance (one, or (N,): the later fix's, interpolated as the
     fix is); ``made`` (N,) bool: which predictions to score (default: those made from
-    RAIL_WARMUP_S after the first fix on). NaN figures when none is scored.
+    RAIL_WARMUP_S after the first fix on).
     """
     t = np.asarray(t, dtype=float)
     bracket = _bracket(t, horizon_s)
@@ -76,10 +96,14 @@ def score(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
     if made is None:
         made = t >= t[0] + RAIL_WARMUP_S
     scored = valid & made
-    count = int(scored.sum())
-    if not count:
-        return LaterFixScore(float('nan'), float('nan'), 0)
-    error = np.asarray(mean)[scored] - target[scored]
-    band = 2.0 * np.sqrt(np.maximum(np.asarray(variance)[scored], 0.0) + r_later[scored])
-    return LaterFixScore(float(np.sqrt(np.mean(error ** 2))),
-                         float(np.mean(np.abs(error) <= band)), count)
+    error = np.asarray(mean, dtype=float)[scored] - target[scored]
+    band = 2.0 * np.sqrt(np.maximum(np.asarray(variance, dtype=float)[scored], 0.0)
+                         + r_later[scored])
+    return LaterFixErrors(error, np.abs(error) <= band, scored)
+
+
+def score(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
+          r_m2: Union[float, np.ndarray], made: Optional[np.ndarray] = None,
+          horizon_s: float = RAIL_HORIZON_S) -> LaterFixScore:
+    """Return the RMSE, 2σ coverage and count of the predictions against the later fix."""
+    return errors(t, z, mean, variance, r_m2, made, horizon_s).summary()

@@ -31,7 +31,7 @@ from typing import Iterator, List, NamedTuple, Optional, Sequence, Tuple, Union
 from kf_train.batch import ConsistencyReport, Segment
 from kf_train.estimator import (
     EstimatorSettings, NS_PER_S, Rejected, resolve_preset, StreamEstimator)
-from kf_train.evaluate import later_fix, later_fix_score
+from kf_train.evaluate import later_fix, later_fix_errors
 from kf_train.filters import MODE_NAMES, numba_available, STATE_NAMES
 from kf_train.presets import RailPreset
 from kf_train.ros import estimator_params
@@ -281,12 +281,11 @@ def score_setting(preset: Union[RailPreset, str], segments: Sequence[Segment],
     gated = resets = reacquired = 0
     for k, (s, scored, run) in enumerate(_runs(preset, segments, windows, variances,
                                                measurement_variance, settings, jit)):
-        fixes.append(later_fix_score(s.t_s, s.z[:, 0], run.mean, run.variance, run.r_m2,
-                                     scored))
-        target, valid = later_fix(s.t_s, s.z[:, 0])     # the rows later_fix_score scores
-        rows = scored & valid
-        errors.append(run.mean[rows] - target[rows])
-        t = s.t_s[rows]
+        against_fix = later_fix_errors(s.t_s, s.z[:, 0], run.mean, run.variance, run.r_m2,
+                                       scored)
+        fixes.append(against_fix.summary())
+        errors.append(against_fix.error_m)
+        t = s.t_s[against_fix.scored]
         blocks.append(k * 2 ** 32 + np.floor((t - t[:1]) / GAIN_BLOCK_S).astype(np.int64))
         if s.truth is not None:
             target, valid = later_fix(s.t_s, s.truth[:, 0])

@@ -6,7 +6,7 @@ from kf_train.batch import Innovations, nis_consistency, Segment
 from kf_train.cli import main as kf_train_main
 from kf_train.cli.tune import main as tune_main
 from kf_train.estimator import Rejected, StreamEstimator
-from kf_train.evaluate import later_fix, later_fix_score, MAX_BRACKET_S
+from kf_train.evaluate import later_fix, later_fix_errors, later_fix_score, MAX_BRACKET_S
 from kf_train.filters import FastRailModel, JIT_VARIABLE, numba_available, RailModel
 from kf_train.presets import load_rail_preset, rail_preset_from_mapping
 from kf_train.sim.rail import rail_scenario
@@ -60,6 +60,16 @@ def test_later_fix_takes_the_fix_at_t_plus_2_s_or_interpolates_within_a_bracket(
     assert score.count == 2
     assert score.rmse_m == pytest.approx(math.sqrt((1.0 + (24.1 - target[1]) ** 2) / 2))
     assert score.coverage == 1.0      # |error| <= 2 sqrt(0.25 + 1)
+    # The errors behind the score: the scored rows, in order, and their band's verdict.
+    mean = np.array([21.0, 28.0, 0, 0, 0, 0])
+    found = later_fix_errors(t, z, mean, np.full(6, 0.25), 1.0, made=np.ones(6, dtype=bool))
+    assert found.scored.tolist() == [True, True, False, False, False, False]
+    np.testing.assert_array_equal(found.error_m, mean[:2] - target[:2])
+    assert found.covered.tolist() == [True, False]       # 28 - 24.14 > 2 sqrt(1.25)
+    assert found.summary() == later_fix_score(t, z, mean, np.full(6, 0.25), 1.0,
+                                              made=np.ones(6, dtype=bool))
+    assert later_fix_errors(t, z, mean, np.full(6, 0.25), 1.0,
+                            made=np.zeros(6, dtype=bool)).summary().count == 0
 
 
 # -- the node's score --------------------------------------------------------------------
