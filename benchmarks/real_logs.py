@@ -30,7 +30,8 @@ Per log this script
    2 s later (linearly interpolated between the two fixes around t + 2 s when none is
    within 1 ms, and only when those two are <= MAX_BRACKET_S apart;
    :mod:`kf_train.evaluate.later_fix`): the RMSE and the 2σ coverage (the
-   prediction's variance plus the later fix's R), of
+   prediction's variance plus the later fix's R: the default's R in use, the learned
+   scale applied, not the 3 m² given, which would cover every error), of
    * ``default``: the estimator node's defaults (the rail IMM, χ² gate, lock-out)
      over the series as a bag, variance R_FIX_M2 per fix (the logs carry no
      accuracy), run exactly as ``kf-train replay BAG -o out.csv`` runs it (the node's
@@ -393,6 +394,7 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
     count = series['t_s'].size
     mean, variance = np.full(count, np.nan), np.full(count, np.nan)
     velocity, p_stand = np.full(count, np.nan), np.full(count, np.nan)
+    r_m2 = np.full(count, float(config.settings.measurement_variance or R_FIX_M2))
     statuses = []
     with bagio.BagInput(bag_path) as bag:
         run = bag_replay.BagRun(config, bag)
@@ -408,6 +410,8 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
                 mean[k], variance[k] = x[0], P[0, 0]
             else:   # reset by this fix, not restarted yet: the fix held where it is
                 mean[k], variance[k] = series['x_m'][k], R_FIX_M2
+            if estimator.initialized:   # the later fix's share of a band: R in use
+                r_m2[k] = estimator.variance_in_use(R_FIX_M2)
             modes = estimator.mode_probabilities() if estimator.initialized else None
             if modes is not None and 'stand' in modes[0]:
                 p_stand[k] = modes[1][modes[0].index('stand')]
@@ -420,8 +424,7 @@ def replay_default(series: Dict[str, np.ndarray], facts: dict, bag_path: Path,
     return {'mean': mean, 'variance': variance, 'velocity': velocity, 'p_stand': p_stand,
             'rejected': rejected,
             'resets': resets, 'diagnostics': len(statuses), 'too_large': too_large,
-            'horizon_s': config.settings.horizon_s,
-            'r_m2': config.settings.measurement_variance or R_FIX_M2}   # 0: the message's
+            'horizon_s': config.settings.horizon_s, 'r_m2': r_m2}
 
 
 def structure_function(t: np.ndarray, x: np.ndarray) -> Dict[float, Tuple[float, int]]:

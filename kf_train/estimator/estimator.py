@@ -287,6 +287,11 @@ class StreamEstimator:
         """Return R of the position: the override when set, else the message's variance."""
         return override_variance(self.settings.measurement_variance, message_variance_m2)
 
+    def variance_in_use(self, message_variance_m2: float) -> float:
+        """Return the R a position of this variance is weighed with now (the scale learned)."""
+        scale = self.noise_scale()
+        return self.measurement_variance(message_variance_m2) * (1.0 if scale is None else scale)
+
     def velocity_variance(self, message_variance_m2s2: float) -> float:
         """Return R of a measured velocity: the override when set, else the message's."""
         return override_variance(self.settings.measurement_velocity_variance,

@@ -22,6 +22,7 @@ from kf_train.evaluate.scores import (
 __all__ = [
     'anees_bounds', 'Comparison', 'CONFIDENCE', 'DEFAULT_COMPARE_PARTICLES', 'DEFAULT_RUNS',
     'default_kinds', 'derived_seed', 'FilterSummary', 'INITIAL_MODES', 'later_fix',
-    'later_fix_errors', 'later_fix_score', 'LaterFixErrors', 'LaterFixScore', 'MATCH_TOLERANCE_S', 'MAX_BRACKET_S', 'nees',
+    'later_fix_errors', 'later_fix_score', 'LaterFixErrors', 'LaterFixScore',
+    'MATCH_TOLERANCE_S', 'MAX_BRACKET_S', 'nees',
     'position_indices', 'run_comparison', 'run_rail_comparison', 'summarise', 'write_curves',
 ]

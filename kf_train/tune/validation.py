@@ -79,7 +79,7 @@ class SettingScore(NamedTuple):
     rmse_m: float
     """RMSE against the later fix [m] (NaN: none scored)."""
     coverage: float
-    """Share within 2σ (the prediction's variance plus the later fix's R)."""
+    """Share within 2σ (the prediction's variance plus the later fix's R in use, learned)."""
     count: int
     """Predictions scored against the later fix."""
     truth_rmse_m: Optional[float]
@@ -181,7 +181,7 @@ class _Run(NamedTuple):
     mean: np.ndarray
     variance: np.ndarray
     r_m2: np.ndarray
-    """The variance each fix was given (the node's override, else the row's)."""
+    """The R each fix is weighed with once fused: the variance given times the learned scale."""
     nis: np.ndarray
     """NIS of each fused fix (NaN: not fused, or the first)."""
     gated: np.ndarray
@@ -199,7 +199,8 @@ def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
     z, given = s.z[:, 0].tolist(), np.asarray(variances, dtype=float).tolist()
     mean, variance, nis = [math.nan] * N, [math.nan] * N, [math.nan] * N
     gated = [False] * N
-    r_m2 = [estimator.measurement_variance(v) for v in given]
+    r_m2 = [estimator.measurement_variance(v) for v in given]   # as given, until learned
+    in_use = estimator.variance_in_use
     # The stats at the window's edges: before its first fix and after its last (the times
     # increase, so its fixes are one run; without any, N: never reached, no events).
     in_window = np.flatnonzero((s.t_s >= window[0]) & (s.t_s < window[1])).tolist()
@@ -221,6 +222,11 @@ def _run_segment(settings: EstimatorSettings, s: Segment, variances: np.ndarray,
             mean[k], variance[k] = x.item(0), P.item(0)
         else:      # reset by this fix, not restarted yet: the fix held where it is
             mean[k], variance[k] = z[k], r_m2[k]
+        if estimator.initialized:
+            # The later fix's share of a band: what the filter now believes a fix adds
+            # (the given R overstates a receiver's scatter up to 20-fold, so a band built
+            # on it covers every error; docs/real-logs.md).
+            r_m2[k] = in_use(given[k])
         if k == last:
             after = estimator.stats()
     return _Run(np.array(mean), np.array(variance), np.array(r_m2), np.array(nis),

@@ -341,3 +341,20 @@ def test_predict_to_is_the_published_prediction_and_changes_nothing(metro):
     step = _feed(train, stamps[:20], zs[:20])[-1]
     np.testing.assert_array_equal(train.predict_to(step.prediction_stamp_ns)[0],
                                   step.predicted_x)
+
+
+def test_variance_in_use_is_the_variance_given_times_the_learned_scale():
+    estimator = StreamEstimator(EstimatorSettings(preset='rail'))
+    assert estimator.variance_in_use(3.0) == 3.0            # nothing learned yet
+    rng = np.random.default_rng(5)
+    for k in range(200):       # a standing train, fixes scattered by 0.1 m, 3 m² given
+        estimator.process(10 ** 9 + k * 10 ** 8, 0.1 * float(rng.standard_normal()), 3.0)
+    scale = estimator.noise_scale()
+    assert scale < 0.1                                       # learned: R given overstates
+    assert estimator.variance_in_use(3.0) == 3.0 * scale
+    overridden = StreamEstimator(EstimatorSettings(preset='rail', measurement_variance=2.0))
+    overridden.process(10 ** 9, 0.0, 3.0)
+    assert overridden.variance_in_use(3.0) == 2.0 * overridden.noise_scale()
+    train = StreamEstimator(EstimatorSettings(preset='train'))
+    train.process(10 ** 9, 0.0, 3.0)
+    assert train.noise_scale() is None and train.variance_in_use(3.0) == 3.0

@@ -88,6 +88,7 @@ def test_score_setting_is_the_node_estimator_run_by_hand():
     t = segment.t_s
     stamps = 10 ** 9 + np.round((t - t[0]) * 1e9).astype(np.int64)
     mean, variance, nis, gated = np.zeros(rows), np.zeros(rows), [], 0
+    r_in_use = np.ones(rows)        # the later fix's share of the band: R learned
     for k in range(rows):
         try:
             step = estimator.process(int(stamps[k]), float(z[k, 0]), 1.0)
@@ -98,6 +99,7 @@ def test_score_setting_is_the_node_estimator_run_by_hand():
             gated += rejection.reason == 'outlier' and t[k] >= window[0]
             x, P = estimator.predict_to(int(stamps[k]) + 2 * 10 ** 9)
             mean[k], variance[k] = x[0], P[0, 0]
+        r_in_use[k] = estimator.noise_scale()
     made = (t >= window[0]) & (t + 2.0 <= t[-1] + 1e-9)
     ahead = np.searchsorted(t, t[made] + 2.0 - 1e-6)
     error = mean[made] - z[ahead, 0]
@@ -106,7 +108,8 @@ def test_score_setting_is_the_node_estimator_run_by_hand():
     assert found.count == int(made.sum())
     assert found.rmse_m == pytest.approx(math.sqrt(np.mean(error ** 2)), rel=1e-12)
     assert found.coverage == pytest.approx(
-        np.mean(np.abs(error) <= 2.0 * np.sqrt(variance[made] + 1.0)), rel=1e-12)
+        np.mean(np.abs(error) <= 2.0 * np.sqrt(variance[made] + r_in_use[ahead])), rel=1e-12)
+    assert not np.all(r_in_use == 1.0)     # the scale was learned: the band is not R given
     assert found.truth_rmse_m == pytest.approx(math.sqrt(np.mean(truth_error ** 2)),
                                                rel=1e-12)
     assert found.mean_nis == pytest.approx(np.mean(nis), rel=1e-12)
