@@ -92,8 +92,15 @@ class NoiseAdaptation:
     start whose fixes called for 10⁻³, and the 2-s prediction 28 m behind a departing
     train (benchmarks/receiver_eval.py, metro 1: 2.23 m against 1.46 m with 1).
     """
-    scale_min: float = 1e-3
-    """Lower bound of s."""
+    scale_min: float = 1e-5
+    """
+    Lower bound of s.
+
+    Low enough for a smooth receiver: tp-lib's clean Belgian logs (R given as 3 m²)
+    scatter by about 1 cm about a smooth path, s ~ 10⁻⁵, and a floor of 10⁻³ held their
+    2-s prediction at 1.3-1.7× a hindsight-tuned CA, 1.0-1.4× with 10⁻⁵
+    (docs/real-logs.md, "A floor of 10⁻⁵ on the learned scale").
+    """
     scale_max: float = 100.0
     """Upper bound of s."""
 

@@ -134,9 +134,9 @@ class RailModelParameters:
     """Standard deviation of a and ℓ at the first measurement [m/s²]."""
     noise_window: float = 50.0
     """Memory of the learned measurement-noise scale [measurements]; 0: R as given."""
-    noise_scale_min: float = 1e-3
+    noise_scale_min: float = NoiseAdaptation.scale_min
     """Lower bound of the learned scale on R."""
-    noise_scale_max: float = 100.0
+    noise_scale_max: float = NoiseAdaptation.scale_max
     """Upper bound of the learned scale on R."""
 
     def __post_init__(self):
