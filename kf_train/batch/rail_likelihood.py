@@ -47,7 +47,9 @@ fixed, as the fit of R itself needs):
   density of N(0, S_gate) at the gate's edge: a robust treatment, continuous in y at
   the gate, that charges an outlier a bounded amount whatever its size (as clutter in
   a PDA filter), so that a setting is not rewarded for gating out fixes it explains badly
-  nor ruined by one 1-km fix.
+  nor ruined by one 1-km fix. The last fused position repeated exactly is judged on the
+  R in use (y²/S) instead, as the node judges a repeated epoch
+  (``Fusion._reject_repeat``), and counted as gated when it fails.
 
 Not modelled: the lock-out and re-acquisition after ``max_consecutive_outliers``
 gated fixes in a row, measured speeds, out-of-sequence fixes (the tests stay clear of
@@ -338,7 +340,7 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
     identity = np.tile(np.eye(6), (count, 4, 1, 1))
     noises = [FIXED] * count
     scale = np.ones(count)
-    last_t = np.full(count, t[0])
+    last_t, last_z = np.full(count, t[0]), np.full(count, z[0])
     for k in range(rows):
         r = reported[:, k + 1]
         cbar, predicted_x, predicted_P = _predict_all(model, t[k + 1] - last_t, means, covs,
@@ -353,12 +355,16 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
         # The gate's variance: with s < 1 the R given (IMM.finish_update's gate_nis).
         gate_S = np.where(scale < 1.0, S + (1.0 - scale) * r, S)
         gate_nis = np.where(scale < 1.0, ybar * ybar / gate_S, ybar * (ybar / S))
-        fused = ~(gate_nis > threshold)
+        # A repeated epoch: the last fused position again, judged on the R in use
+        # (Fusion._reject_repeat), not fused, counted as gated.
+        repeat = (scale < 1.0) & (z[k + 1] == last_z) & (ybar * (ybar / S) > threshold)
+        fused = ~(gate_nis > threshold) & ~repeat
         result.add(k, ll, fused, threshold, gate_S, ybar, S)
         means = np.where(fused[:, None, None], x, means)
         covs = np.where(fused[:, None, None, None], P, covs)
         probabilities = np.where(fused[:, None], posterior, probabilities)
         last_t = np.where(fused, t[k + 1], last_t)
+        last_z = np.where(fused, z[k + 1], last_z)
         if adaptation is not None:
             for i in np.nonzero(fused)[0].tolist():      # the node's own rule, fix by fix
                 noises[i] = adaptation.learn(noises[i], float(ybar[i]), float(S[i]),
@@ -405,7 +411,8 @@ def _compiled_pass(segment: Segment, model: _Model, reported: np.ndarray, noise,
     if N < 2:
         return result
     state = _first(model.base, float(segment.z[0, 0]), reported[:, 0]) + (
-        np.tile(np.array([1.0, 0.0, 0.0]), (count, 1)), np.full(count, segment.t_s[0]))
+        np.tile(np.array([1.0, 0.0, 0.0]), (count, 1)), np.full(count, segment.t_s[0]),
+        np.full(count, float(segment.z[0, 0])))
 
     def unit_matrices(dt_s: float):
         unit = model.units(dt_s)

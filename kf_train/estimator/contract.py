@@ -21,8 +21,16 @@ import numpy as np
 NUMERICAL_ERRORS = (ValueError, ArithmeticError)
 
 REJECTION_REASONS = ('wrong_frame', 'non_finite', 'bad_variance', 'zero_stamp',
-                     'future_stamp', 'duplicate_stamp', 'stale_stamp', 'outlier', 'numerical')
-"""Why a measurement was not fused; keys of :attr:`EstimatorStats.rejections`."""
+                     'future_stamp', 'duplicate_stamp', 'stale_stamp', 'outlier', 'repeated',
+                     'numerical')
+"""
+Why a measurement was not fused; keys of :attr:`EstimatorStats.rejections`.
+
+``repeated``: a receiver's repeated epoch, the newest fused position again while the
+track has moved beyond the gate on the R in use (``Fusion._reject_repeat``); repeats
+count toward a lock-out as outliers do (a receiver holding one position says the train
+stands there).
+"""
 
 CONTROL_REJECTION_REASONS = ('non_finite', 'zero_stamp', 'future_stamp', 'stale_stamp',
                              'numerical')

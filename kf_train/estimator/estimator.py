@@ -104,8 +104,12 @@ Time handling:
 * ``restart_after_stale`` consecutive stale measurements mean the stream restarted
   (a bag loop, a restarted sensor): the filter resets and initialises from the last
   of them.
-* ``max_consecutive_outliers`` consecutive gate (or numerical) rejections that agree
-  with each other are a lock-out (:mod:`~kf_train.estimator.reacquire`). By default
+* A repeated epoch, the newest fused position again while the track has moved beyond
+  the gate on the R in use, is rejected (``repeated``) where R is learned below the R
+  given (the gate then uses the R given, under which a repeat 6 m behind a 31 m/s
+  train passes and is weighed with σ of a few cm).
+* ``max_consecutive_outliers`` consecutive gate (repeated, numerical) rejections that
+  agree with each other are a lock-out (:mod:`~kf_train.estimator.reacquire`). By default
   (``lockout`` reacquire) the track is kept: widened by the jump between it and the
   group's line, the group fused into it, never gated, the last fix's step returned
   (``stats().reacquisitions``). With ``lockout`` reset, or when the lock-out came from

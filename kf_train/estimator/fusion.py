@@ -45,6 +45,8 @@ class Fusion:
         self.rejected: List[Tuple[int, np.ndarray, np.ndarray]] = []
         self.regroup: List[Tuple[int, np.ndarray, np.ndarray]] = []
         self.counters = Counters()
+        self.last_z: Optional[np.ndarray] = None
+        """The newest fused position (read-only): its exact repeat may be a repeated epoch."""
         self.newest_is_velocity = False
         """Whether the newest fused step is a speed (a position of its stamp goes before it)."""
         self.configure(config)
@@ -59,7 +61,7 @@ class Fusion:
 
     def reset(self, reason: str) -> None:
         """Forget the state; the next measurement initialises the filter again."""
-        self.x = self.P = None
+        self.x = self.P = self.last_z = None
         self.newest_is_velocity = False
         self.last_stamp_ns = None
         self.history.clear()
@@ -206,7 +208,7 @@ class Fusion:
                        update: Optional[UpdateResult] = None, fix: Optional[tuple] = None,
                        in_order: bool = False) -> None:
         """
-        Reject an outlier or a numerical failure; enough in a row make a lock-out.
+        Reject an outlier, a repeated epoch or a numerical failure; enough in a row lock out.
 
         ``fix`` (stamp, z, R) is the rejected measurement. The lock-out needs the last
         ``max_consecutive_outliers`` rejected fixes to be one consistent group
@@ -221,7 +223,7 @@ class Fusion:
             self.rejected = (self.rejected + [fix])[-needed:]
         reset = None
         if self.consecutive_outliers >= needed and self._group_agrees():
-            if (in_order and reason == 'outlier' and len(self.rejected) >= 2
+            if (in_order and reason in ('outlier', 'repeated') and len(self.rejected) >= 2
                     and self.controls is None and self.config.settings.lockout == 'reacquire'):
                 raise _Reacquire()
             reset = 'outlier_lockout'
@@ -400,6 +402,8 @@ class Fusion:
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'update failed: {error}', fix=(t_b, z, R))
         threshold = self.config.gate_threshold
+        if in_order and result.gate_nis is not None:
+            self._reject_repeat(t_b, z, R, result)
         nis = result.nis if result.gate_nis is None else result.gate_nis
         if nis > threshold:
             self._reject_update('outlier', (
@@ -412,6 +416,37 @@ class Fusion:
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'prediction failed: {error}')
         return x, P, result, predicted, exact
+
+    def _reject_repeat(self, stamp_ns: int, z: np.ndarray, R: np.ndarray,
+                       result: UpdateResult) -> None:
+        """
+        Reject the newest fused position repeated exactly although the track has moved.
+
+        A receiver repeats an epoch (its last output again, after a dropped solution or
+        an outage): at 31 m/s a repeat 0.2 s later is a 6-m step back. The gate uses
+        the R given when R is learned lower (``gate_nis``), and a learned R of a few
+        centimetres then weighs that step as motion. So an exact repeat is judged on
+        the R in use: innovation y = z - H x̂ (z the last fix again, so y is how far the
+        track moved from it), rejected when its NIS yᵀ S⁻¹ y, S = H P Hᵀ + s R (the
+        update's own), exceeds the gate. A standing train's held position (an exact
+        repeat too) has y of the last fix's residual and is fused. Judged only where R
+        is learned below the R given (``gate_nis`` set), so seeds and presets with R as
+        given are untouched. Repeats count toward
+        the lock-out as outliers do: a receiver that keeps repeating one position says
+        the train stands there, and ``max_consecutive_outliers`` of them re-acquire the
+        track on it (on a real log a receiver held one position for over 15 s while the
+        track coasted on at 10.8 m/s).
+        """
+        if self.last_z is None or not np.array_equal(z, self.last_z):
+            return
+        y = result.innovation
+        moved = result.nis                                   # yᵀ S⁻¹ y, S with s R
+        if moved > self.config.gate_threshold:
+            self._reject_update('repeated', (
+                f'the last fused position again, {np.array2string(z, precision=6)}, '
+                f'though the track moved {np.array2string(-y, precision=6)} from it (NIS '
+                f'{moved:.6g} on the R in use, gate {self.config.gate_threshold:.6g}): a '
+                'repeated epoch'), result, (stamp_ns, z, R), in_order=True)
 
     def _fuse_out_of_sequence(self, stamp_ns: int, z: np.ndarray,
                               R: np.ndarray) -> EstimateStep:
@@ -462,7 +497,7 @@ class Fusion:
     def _commit(self, stamp_ns: int, x: np.ndarray, P: np.ndarray, kind: str,
                 z: np.ndarray, R: np.ndarray) -> None:
         """Make (x, P) at stamp_ns the newest state and keep it for replay."""
-        self.x, self.P, self.last_stamp_ns = x, P, stamp_ns
+        self.x, self.P, self.last_stamp_ns, self.last_z = x, P, stamp_ns, z
         self.newest_is_velocity = False
         self.history.commit(Entry(stamp_ns, z, R, self.config.model, x, P, kind))
         self._after_fusion()

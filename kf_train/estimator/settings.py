@@ -119,7 +119,7 @@ class EstimatorSettings:
     gate_probability: float = DEFAULT_GATE_PROBABILITY
     """χ² gate on the NIS: reject when P(χ²(m) <= NIS) exceeds this; 1 = no gate."""
     max_consecutive_outliers: int = 10
-    """Consecutive gate (or numerical) rejections that make a lock-out (see ``lockout``)."""
+    """Consecutive gate (repeated-epoch, numerical) rejections that lock out (``lockout``)."""
     lockout: str = 'reacquire'
     """What a lock-out does (:data:`LOCKOUT_ACTIONS`): ``reacquire`` keeps the track,
     widened by the rejected group's disagreement, and fuses the group; ``reset`` forgets

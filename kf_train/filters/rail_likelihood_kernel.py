@@ -262,7 +262,7 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
         predict_constants
     big_dt, big_F, big_Qa, big_Ql = big
     F_rows, Qa_rows, Ql_rows, first = units
-    means, covs, probabilities, noise, last_t = state
+    means, covs, probabilities, noise, last_t, last_z = state
     total, gated_count, ys, Ss, gated, scales = outputs
     next_row, status, need_dt = progress
     modes, n = means.shape[1], means.shape[2]
@@ -297,8 +297,11 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
             break
         gate_S = S + (1.0 - s_now) * r if s_now < 1.0 else S       # gated with the R given
         gate_nis = y * y / gate_S if s_now < 1.0 else y * (y / S)
+        # A repeated epoch (the last fused position again) is judged on the R in use
+        # (kf_train.estimator.fusion.Fusion._reject_repeat) and not fused, as gated.
+        repeat = s_now < 1.0 and z[row] == last_z[k] and y * (y / S) > threshold
         ys[k, row - 1], Ss[k, row - 1] = y, S
-        if gate_nis > threshold:
+        if repeat or gate_nis > threshold:
             total[k] += -0.5 * (threshold + math.log(gate_S) + LOG_2PI)
             gated_count[k] += 1
             gated[k, row - 1] = True
@@ -310,6 +313,7 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
             _learn(noise[k], y, S, r, adaptation[0], adaptation[1], adaptation[2],
                    adaptation[3])
             last_t[k] = t[row]
+            last_z[k] = z[row]
         scales[k, row - 1] = noise[k, 0]
         row += 1
     next_row[k] = row
@@ -378,8 +382,9 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     Run every setting over a whole segment, chunk by chunk, adding the big dts it asks for.
 
     ``reported`` (K, N) the variances given, ``noises`` (q_a, q_ℓ, q_c) each (K,),
-    ``state`` (means, covs, probabilities, noise (K, 3), last stamp (K,)) after the first
-    fix, ``outputs`` (ℓ (K,), gated count (K,), y, S, gated, scale (K, N − 1)), in place.
+    ``state`` (means, covs, probabilities, noise (K, 3), last fused stamp and position
+    (K,)) after the first fix, ``outputs`` (ℓ (K,), gated count (K,), y, S, gated,
+    scale (K, N − 1)), in place.
     Raises ValueError for a non-finite state (a noise too large).
     """
     series_dt, dynamics_constants, predict_constants = _constants(parameters)
@@ -456,7 +461,8 @@ def warm_up() -> None:
     count, rows = 1, t.shape[0] - 1
     state = (np.tile(np.array([0.0, 0.0, 0.0, 0.0, 0.8, 0.9]), (count, 4, 1)),
              np.tile(parameters.initial_covariance(1.0), (count, 4, 1, 1)),
-             np.full((count, 4), 0.25), np.array([[1.0, 0.0, 0.0]]), np.zeros(count))
+             np.full((count, 4), 0.25), np.array([[1.0, 0.0, 0.0]]), np.zeros(count),
+             np.zeros(count))
     outputs = (np.zeros(count), np.zeros(count, dtype=np.int64), np.zeros((count, rows)),
                np.zeros((count, rows)), np.zeros((count, rows), dtype=np.bool_),
                np.ones((count, rows)))

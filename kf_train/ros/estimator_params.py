@@ -188,8 +188,9 @@ PARAMETERS_LIVE = (
             'gate_probability:=1.0) needs to reproduce seed 000 on any data. ' + _LIVE,
             GATE_PROBABILITY_RANGE, group=_G_LIVE),
     _integer('max_consecutive_outliers', _CORE.max_consecutive_outliers,
-             'After this many gate (or numerical) rejections in a row that agree with each '
-             'other (a line fits them) comes a lock-out (see lockout). ' + _LIVE,
+             'After this many gate (repeated-epoch or numerical) rejections in a row that '
+             'agree with each other (a line fits them) comes a lock-out (see lockout). '
+             + _LIVE,
              MAX_CONSECUTIVE_OUTLIERS_RANGE, group=_G_LIVE),
     ParamSpec(
         'lockout', 'string', _CORE.lockout,

@@ -34,8 +34,12 @@ def _run(seed: int, rows: int, outliers=(), true_scale: float = 0.5, jitter_s: f
     return stamps, Segment(stamps / 1e9, z[:, None]), variances
 
 
-def _node(stamps, segment, variances):
-    """Return the node's per-fix (gated, y, S, scale after) and its ℓ, from its own states."""
+def _node(stamps, segment, variances, reasons=None):
+    """
+    Return the node's per-fix (gated, y, S, scale after) and its ℓ, from its own states.
+
+    ``reasons``, a list, receives each rejection's reason.
+    """
     estimator = StreamEstimator(EstimatorSettings())
     assert estimator.gate_threshold == pytest.approx(GATE, rel=1e-12)
     imm = estimator.model.imm
@@ -58,7 +62,9 @@ def _node(stamps, segment, variances):
             step = estimator.process(stamp, z, r)
             result, rejected = step.update, False
         except Rejected as rejection:
-            assert rejection.reason == 'outlier'
+            assert rejection.reason in ('outlier', 'repeated')
+            if reasons is not None:
+                reasons.append(rejection.reason)
             result, rejected = rejection.update, True
         if k == 0:
             continue
@@ -102,6 +108,32 @@ def test_the_likelihood_is_the_nodes_with_variances_learned_scale_and_gate(node_
     # ℓ (~ -2e3): a sum of 1199 terms each within ~1e-12: 1e-9 relative.
     assert result.log_likelihood[0] == pytest.approx(node_ll, rel=1e-9)
     assert scales[-1] == pytest.approx(0.5, rel=0.5)   # it learned the true scale's order
+
+
+@pytest.mark.parametrize('engine', ['numpy', 'numba'])
+def test_a_repeated_epoch_is_judged_on_the_r_in_use_as_the_node_judges_it(engine):
+    """Exact repeats of the last fix while moving: the node's 'repeated', gated here."""
+    if engine == 'numba':
+        pytest.importorskip('numba')
+    # Errors of 3-10 cm for 0.1-1 m² given: the learned R is ~1 % of it, and a repeat
+    # 0.1 s after its fix (1-2 m behind a moving train) passes the gate on the R given.
+    stamps, segment, variances = _run(16, 1200, true_scale=0.01, decades=1.0)
+    z = segment.z.copy()
+    rows = list(range(200, 1200, 53))
+    z[rows, 0] = z[[row - 1 for row in rows], 0]
+    segment = Segment(segment.t_s, z)
+    reasons = []
+    gated, ys, Ss, scales, node_ll = _node(stamps, segment, variances, reasons)
+    assert reasons.count('repeated') >= 10        # the moving ones (some are at stops)
+    base = resolve_preset('rail').parameters
+    result = rail_log_likelihoods(base, [segment], [RailNoise()], innovations=True,
+                                  variances=[variances], adaptation=base.adaptation(),
+                                  gate_threshold=GATE, engine=engine)
+    np.testing.assert_array_equal(result.gated[0], gated)
+    # As in the test above: the same equations, within ~1e-12; 1e-8 for a margin.
+    np.testing.assert_allclose(result.innovation[0], ys, rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(result.scale[0], scales, rtol=1e-8)
+    assert result.log_likelihood[0] == pytest.approx(node_ll, rel=1e-9)
 
 
 def test_the_defaults_keep_the_fixed_r_likelihood():
