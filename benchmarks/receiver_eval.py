@@ -12,7 +12,8 @@ q and R grid-searched in hindsight on the same run (kf_train.sim.rail_baselines)
 Printed per run: the 2-s prediction RMSE against the truth and against the fix 2 s
 later, the 2σ coverage (truth), resets, the lowest velocity estimate and P(stand) on
 standing fixes. Scoring starts 10 s after the first fix (a cold start is scored). A
-rejected fix's prediction is the newest state's, predicted on (as the node publishes).
+rejected fix's prediction is the newest state's, predicted on (as real_logs.py and
+``kf-train tune`` score it; the node itself publishes nothing for a rejected fix).
 
     .venv/bin/python benchmarks/receiver_eval.py [--seeds 0-5] [--duration 900] [--doppler]
         [--warmup 10] [--no-anchors]

@@ -431,11 +431,11 @@ class Fusion:
         update's own), exceeds the gate. A standing train's held position (an exact
         repeat too) has y of the last fix's residual and is fused. Judged only where R
         is learned below the R given (``gate_nis`` set), so seeds and presets with R as
-        given are untouched. Repeats count toward
-        the lock-out as outliers do: a receiver that keeps repeating one position says
-        the train stands there, and ``max_consecutive_outliers`` of them re-acquire the
-        track on it (on a real log a receiver held one position for over 15 s while the
-        track coasted on at 10.8 m/s).
+        given are untouched. Repeats count toward the lock-out as outliers do: a
+        receiver that keeps repeating one position says the train stands there, and
+        ``max_consecutive_outliers`` of them re-acquire the track on it (on a real log
+        a receiver held one position for over 15 s while the track coasted on at 10.8
+        m/s).
         """
         if self.last_z is None or not np.array_equal(z, self.last_z):
             return

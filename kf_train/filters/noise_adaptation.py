@@ -98,7 +98,7 @@ class NoiseAdaptation:
 
     Low enough for a smooth receiver: tp-lib's clean Belgian logs (R given as 3 m²)
     scatter by about 1 cm about a smooth path, s ~ 10⁻⁵, and a floor of 10⁻³ held their
-    2-s prediction at 1.3-1.7× a hindsight-tuned CA, 1.0-1.4× with 10⁻⁵
+    2-s prediction at 1.1-1.7× a hindsight-tuned CA, 0.9-1.2× with 10⁻⁵
     (docs/real-logs.md, "A floor of 10⁻⁵ on the learned scale").
     """
     scale_max: float = 100.0
