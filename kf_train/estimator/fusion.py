@@ -402,7 +402,8 @@ class Fusion:
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'update failed: {error}', fix=(t_b, z, R))
         threshold = self.config.gate_threshold
-        if in_order and result.gate_nis is not None:
+        # The float comparison first: np.array_equal costs ~3 µs, on every fix.
+        if in_order and result.gate_nis is not None and result.nis > threshold:
             self._reject_repeat(t_b, z, R, result)
         nis = result.nis if result.gate_nis is None else result.gate_nis
         if nis > threshold:
@@ -422,6 +423,8 @@ class Fusion:
         """
         Reject the newest fused position repeated exactly although the track has moved.
 
+        Called for a fix whose NIS on the R in use exceeds the gate.
+
         A receiver repeats an epoch (its last output again, after a dropped solution or
         an outage): at 31 m/s a repeat 0.2 s later is a 6-m step back. The gate uses
         the R given when R is learned lower (``gate_nis``), and a learned R of a few
@@ -437,11 +440,8 @@ class Fusion:
         a receiver held one position for over 15 s while the track coasted on at 10.8
         m/s).
         """
-        if self.last_z is None or not np.array_equal(z, self.last_z):
-            return
-        y = result.innovation
-        moved = result.nis                                   # yᵀ S⁻¹ y, S with s R
-        if moved > self.config.gate_threshold:
+        if self.last_z is not None and np.array_equal(z, self.last_z):
+            y, moved = result.innovation, result.nis         # yᵀ S⁻¹ y, S with s R
             self._reject_update('repeated', (
                 f'the last fused position again, {np.array2string(z, precision=6)}, '
                 f'though the track moved {np.array2string(-y, precision=6)} from it (NIS '
