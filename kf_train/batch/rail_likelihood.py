@@ -65,9 +65,9 @@ from typing import NamedTuple, Optional, Sequence
 from kf_train import filters
 from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
-    bound_acceleration, first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES, NoiseAdaptation,
-    NoiseScale, numba_available, RailModel, RailModelParameters, RateTransition,
-    stop_probability, STOPPING)
+    bound_acceleration, combine, first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES,
+    moved_past, NoiseAdaptation, NoiseScale, numba_available, RailModel, RailModelParameters,
+    RateTransition, stop_probability, STOPPING)
 import numpy as np
 
 STAND = MODE_NAMES.index('stand')
@@ -355,9 +355,11 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
         # The gate's variance: with s < 1 the R given (IMM.finish_update's gate_nis).
         gate_S = np.where(scale < 1.0, S + (1.0 - scale) * r, S)
         gate_nis = np.where(scale < 1.0, ybar * ybar / gate_S, ybar * (ybar / S))
-        # A repeated epoch: the last fused position again, judged on the R in use
-        # (Fusion._reject_repeat), not fused, counted as gated.
-        repeat = (scale < 1.0) & (z[k + 1] == last_z) & (ybar * (ybar / S) > threshold)
+        # A repeated epoch: the last fused position again, judged on the R in use and
+        # on the speed at the last fix (Fusion._reject_repeat), not fused, counted as
+        # gated.
+        repeat = _repeats(float(z[k + 1]), last_z, t[k + 1] - last_t, scale, R,
+                          ybar * (ybar / S), threshold, (means, covs, probabilities))
         fused = ~(gate_nis > threshold) & ~repeat
         result.add(k, ll, fused, threshold, gate_S, ybar, S)
         means = np.where(fused[:, None, None], x, means)
@@ -374,6 +376,17 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
     if not (np.all(np.isfinite(means)) and np.all(np.isfinite(covs))):
         raise ValueError('the rail filter produced a non-finite state; a noise is too large')
     return result
+
+
+def _repeats(z: float, last_z: np.ndarray, dt_s: np.ndarray, scale: np.ndarray,
+             R: np.ndarray, moved_nis: np.ndarray, threshold: float, state) -> np.ndarray:
+    """Return which settings reject z as a repeated epoch (Fusion._reject_repeat)."""
+    repeat = (scale < 1.0) & (z == last_z)
+    for i in np.nonzero(repeat & ~(moved_nis > threshold))[0].tolist():
+        x, P = combine(*(part[i] for part in state))   # the state at the last fused fix
+        repeat[i] = moved_past(float(x[1]), float(P[1, 1]), float(dt_s[i]),
+                               float(P[0, 0]) + float(R[i]), threshold)
+    return repeat
 
 
 class _SegmentResult(NamedTuple):

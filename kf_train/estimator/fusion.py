@@ -20,7 +20,7 @@ from kf_train.estimator.history import (
     Entry, History, initial_state, replay, replay_control, rewind_point)
 from kf_train.estimator.reacquire import consistent_group, fit_line, jump_covariance
 from kf_train.estimator.settings import Configuration
-from kf_train.filters import NS_PER_S, UpdateResult
+from kf_train.filters import moved_past, NS_PER_S, UpdateResult
 import numpy as np
 
 
@@ -402,9 +402,10 @@ class Fusion:
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'update failed: {error}', fix=(t_b, z, R))
         threshold = self.config.gate_threshold
-        # The float comparison first: np.array_equal costs ~3 µs, on every fix.
-        if in_order and result.gate_nis is not None and result.nis > threshold:
-            self._reject_repeat(t_b, z, R, result)
+        # One float comparison first: np.array_equal costs ~3 µs, on every fix.
+        if in_order and result.gate_nis is not None and self.last_z is not None and \
+                z[0] == self.last_z[0]:
+            self._reject_repeat(x0, P0, (t_b - t_a) / NS_PER_S, t_b, z, R, result)
         nis = result.nis if result.gate_nis is None else result.gate_nis
         if nis > threshold:
             self._reject_update('outlier', (
@@ -418,35 +419,55 @@ class Fusion:
             self._reject_update('numerical', f'prediction failed: {error}')
         return x, P, result, predicted, exact
 
-    def _reject_repeat(self, stamp_ns: int, z: np.ndarray, R: np.ndarray,
-                       result: UpdateResult) -> None:
+    def _reject_repeat(self, x0: np.ndarray, P0: np.ndarray, dt_s: float, stamp_ns: int,
+                       z: np.ndarray, R: np.ndarray, result: UpdateResult) -> None:
         """
         Reject the newest fused position repeated exactly although the track has moved.
 
-        Called for a fix whose NIS on the R in use exceeds the gate.
+        Called for an in-order fix equal to the last fused one in its first entry, where
+        R is learned below the R given (``gate_nis`` set): seeds and presets with R as
+        given are untouched. (x0, P0) is the state at the last fused stamp, dt_s ago.
 
         A receiver repeats an epoch (its last output again, after a dropped solution or
         an outage): at 31 m/s a repeat 0.2 s later is a 6-m step back. The gate uses
-        the R given when R is learned lower (``gate_nis``), and a learned R of a few
-        centimetres then weighs that step as motion. So an exact repeat is judged on
-        the R in use: innovation y = z - H x̂ (z the last fix again, so y is how far the
-        track moved from it), rejected when its NIS yᵀ S⁻¹ y, S = H P Hᵀ + s R (the
-        update's own), exceeds the gate. A standing train's held position (an exact
-        repeat too) has y of the last fix's residual and is fused. Judged only where R
-        is learned below the R given (``gate_nis`` set), so seeds and presets with R as
-        given are untouched. Repeats count toward the lock-out as outliers do: a
-        receiver that keeps repeating one position says the train stands there, and
-        ``max_consecutive_outliers`` of them re-acquire the track on it (on a real log
-        a receiver held one position for over 15 s while the track coasted on at 10.8
-        m/s).
+        the R given when R is learned lower, and a learned R of a few centimetres then
+        weighs that step as motion. So an exact repeat is rejected when either
+
+        * its NIS on the R in use, yᵀ S⁻¹ y with S = H P Hᵀ + s R (the update's own; y is
+          how far the track moved from the last fix), exceeds the gate; or
+        * the train was moving too fast to be there (rail_model.moved_past: its speed
+          then, at the gate's lower bound, braking at once at the model's limit). After
+          a 30-s outage the regimes spread over hundreds of metres and a repeat of the
+          last fix passes the gate on the prediction: on a 98-minute receiver run one
+          such repeat was fused as a train braked to a halt 292 m back, and the next
+          fixes were rejected for 2 s.
+
+        A standing train's held position (an exact repeat too) has y of the last fix's
+        residual and a speed near 0, and is fused. Repeats count toward the lock-out as
+        outliers do: a receiver that keeps repeating one position says the train stands
+        there, and ``max_consecutive_outliers`` of them re-acquire the track on it (on a
+        real log a receiver held one position for over 15 s while the track coasted on
+        at 10.8 m/s).
         """
-        if self.last_z is not None and np.array_equal(z, self.last_z):
-            y, moved = result.innovation, result.nis         # yᵀ S⁻¹ y, S with s R
-            self._reject_update('repeated', (
-                f'the last fused position again, {np.array2string(z, precision=6)}, '
-                f'though the track moved {np.array2string(-y, precision=6)} from it (NIS '
-                f'{moved:.6g} on the R in use, gate {self.config.gate_threshold:.6g}): a '
-                'repeated epoch'), result, (stamp_ns, z, R), in_order=True)
+        if not np.array_equal(z, self.last_z):
+            return
+        threshold = self.config.gate_threshold
+        model = self.config.model
+        if result.nis > threshold:                           # yᵀ S⁻¹ y, S with s R
+            why = f'NIS {result.nis:.6g} on the R in use, gate {threshold:.6g}'
+        elif self.config.velocity_model is not None:
+            v = model.state_names.index('velocity')
+            reach_m2 = float(P0[0, 0]) + model.noise_scale(x0, P0) * float(R[0, 0])
+            if not moved_past(float(x0[v]), float(P0[v, v]), dt_s, reach_m2, threshold):
+                return
+            why = (f'{dt_s:.6g} s after a fix at {float(x0[v]):.6g} m/s: it cannot '
+                   'have stopped there')
+        else:
+            return
+        self._reject_update('repeated', (
+            f'the last fused position again, {np.array2string(z, precision=6)}, though '
+            f'the track moved {np.array2string(-result.innovation, precision=6)} from it '
+            f'({why}): a repeated epoch'), result, (stamp_ns, z, R), in_order=True)
 
     def _fuse_out_of_sequence(self, stamp_ns: int, z: np.ndarray,
                               R: np.ndarray) -> EstimateStep:

@@ -44,7 +44,7 @@ from kf_train.filters.particle import (
 from kf_train.filters.rail_fast import (
     FastRailModel, jit_enabled, JIT_VARIABLE, numba_available, rail_model)
 from kf_train.filters.rail_model import (
-    bound_acceleration, hold_velocity, make_rail_filter, MODE_NAMES, RailModel,
+    bound_acceleration, hold_velocity, make_rail_filter, MODE_NAMES, moved_past, RailModel,
     RailModelParameters, STATE_NAMES, stop_probability, STOPPING)
 from kf_train.filters.regularised_pf import (
     kernel_draws, KERNELS, optimal_bandwidth, regularisation_jitter, RegularisedParticleFilter,
@@ -75,7 +75,8 @@ __all__ = [
     'kernel_draws', 'KERNELS', 'LOG_2PI', 'LinearDynamicsModel', 'LinearModel', 'log_normalise',
     'make_filter', 'make_rail_filter', 'make_state', 'MAX_PARTICLES', 'MerweScaledSigmaPoints',
     'NoiseAdaptation', 'NoiseScale', 'numba_available',
-    'MODE_NAMES', 'noise_terms_function', 'NoiseModel', 'NS_PER_S', 'optimal_bandwidth',
+    'MODE_NAMES', 'moved_past', 'noise_terms_function', 'NoiseModel', 'NS_PER_S',
+    'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
     'PredictThenUpdate',

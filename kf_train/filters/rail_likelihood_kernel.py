@@ -40,7 +40,7 @@ from kf_train.filters.rail_dynamics import RelaxationNoise
 from kf_train.filters.rail_fast import FastRailModel
 from kf_train.filters.rail_kernels import (
     bound_acceleration, dynamics, hold_velocity, LOG_2PI, NON_FINITE, OK, transition)
-from kf_train.filters.rail_model import RailModel, RailModelParameters
+from kf_train.filters.rail_model import moved_past, RailModel, RailModelParameters
 import numba
 import numpy as np
 
@@ -68,6 +68,24 @@ def _learn(noise, y, S, r, window, prior, scale_min, scale_max):
     noise[0] = min(max(noise[0] * math.exp(step), scale_min), scale_max)
     noise[1] = information
     noise[2] = min(noise[2] + 1.0, window)
+
+
+_moved_past = _jit(moved_past)
+
+
+@_jit
+def _moved_past_last(means, covs, probabilities, dt, R, threshold):
+    """Return moved_past of the mixture at the last fused fix (imm_stack.combine's x, P)."""
+    x0, x1 = 0.0, 0.0
+    for j in range(means.shape[0]):
+        x0 += probabilities[j] * means[j, 0]                        # x = Σ μ_j x_j
+        x1 += probabilities[j] * means[j, 1]
+    pxx, pvv = 0.0, 0.0
+    for j in range(means.shape[0]):
+        d0, d1 = means[j, 0] - x0, means[j, 1] - x1
+        pxx += probabilities[j] * (covs[j, 0, 0] + d0 * d0)         # Σ μ_j (P_j + d dᵀ)
+        pvv += probabilities[j] * (covs[j, 1, 1] + d1 * d1)
+    return _moved_past(x1, pvv, dt, pxx + R, threshold)
 
 
 @_jit
@@ -298,8 +316,10 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
         gate_S = S + (1.0 - s_now) * r if s_now < 1.0 else S       # gated with the R given
         gate_nis = y * y / gate_S if s_now < 1.0 else y * (y / S)
         # A repeated epoch (the last fused position again) is judged on the R in use
-        # (kf_train.estimator.fusion.Fusion._reject_repeat) and not fused, as gated.
-        repeat = s_now < 1.0 and z[row] == last_z[k] and y * (y / S) > threshold
+        # and on the speed at the last fix (Fusion._reject_repeat), not fused, as gated.
+        repeat = s_now < 1.0 and z[row] == last_z[k] and (
+            y * (y / S) > threshold or _moved_past_last(
+                means[k], covs[k], probabilities[k], dt, R, threshold))
         ys[k, row - 1], Ss[k, row - 1] = y, S
         if repeat or gate_nis > threshold:
             total[k] += -0.5 * (threshold + math.log(gate_S) + LOG_2PI)

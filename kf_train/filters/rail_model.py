@@ -235,6 +235,30 @@ def stop_probability(v, std, stop_speed_mps: float):
         _normal_cdf((stop_speed_mps - v) / std)
 
 
+def moved_past(speed_mps: float, speed_variance: float, dt_s: float,
+               position_variance_m2: float, threshold: float) -> bool:
+    """
+    Return whether a train at this speed must have moved past a fix's reach in dt_s.
+
+    The speed's lower bound at the gate's own width, v⁻ = v - √(γ σ_v²), braking at
+    once at ACCELERATION_LIMIT_MPS2 = a covers at least d = v⁻ dt - ½ a dt² (v⁻²/2a if
+    it stops within dt); True when d² > γ (P_pp + s r), beyond the gate on the
+    position's variance. It tells a receiver's repeated epoch from a standing train's
+    held position whatever the gap (Fusion._reject_repeat): after a 30-s outage the
+    IMM's regimes spread over hundreds of metres, so a repeat of the last fix passes
+    the gate on the prediction, but a train that was doing 18 m/s cannot be there.
+    Plain floats and ``math`` only: the tuner's compiled likelihood compiles it as is.
+    """
+    lower = speed_mps - math.sqrt(threshold * speed_variance)             # v⁻
+    if not lower > 0.0:
+        return False
+    if lower <= ACCELERATION_LIMIT_MPS2 * dt_s:
+        travel = 0.5 * lower * lower / ACCELERATION_LIMIT_MPS2            # stops within dt
+    else:
+        travel = (lower - 0.5 * ACCELERATION_LIMIT_MPS2 * dt_s) * dt_s     # v⁻ dt - ½ a dt²
+    return travel * travel > threshold * position_variance_m2
+
+
 def bound_acceleration(means: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     """
     Return the means with every acceleration beyond ±ACCELERATION_LIMIT_MPS2 projected onto it.

@@ -136,6 +136,40 @@ def test_a_repeated_epoch_is_judged_on_the_r_in_use_as_the_node_judges_it(engine
     assert result.log_likelihood[0] == pytest.approx(node_ll, rel=1e-9)
 
 
+@pytest.mark.parametrize('engine', ['numpy', 'numba'])
+def test_a_repeat_after_an_outage_is_judged_on_the_speed_as_the_node_judges_it(engine):
+    """30-s outages while moving, each ended by the last fix again: rejected, gated here."""
+    if engine == 'numba':
+        pytest.importorskip('numba')
+    stamps, segment, variances = _run(16, 2600, true_scale=0.01, decades=1.0)
+    keep = np.ones(2600, dtype=bool)
+    repeats = []
+    for last in (700, 2000):                      # at 18 and 12 m/s (10 Hz rows)
+        keep[last + 1:last + 301] = False          # 30 s without a fix
+        repeats.append(last + 301)
+    z = segment.z.copy()
+    for row in repeats:
+        z[row, 0] = z[row - 301, 0]                # the last fix before the outage again
+    stamps, variances = stamps[keep], variances[keep]
+    segment = Segment(segment.t_s[keep], z[keep])
+    reasons = []
+    gated, ys, Ss, scales, node_ll = _node(stamps, segment, variances, reasons)
+    assert reasons.count('repeated') >= 2
+    base = resolve_preset('rail').parameters
+    result = rail_log_likelihoods(base, [segment], [RailNoise()], innovations=True,
+                                  variances=[variances], adaptation=base.adaptation(),
+                                  gate_threshold=GATE, engine=engine)
+    np.testing.assert_array_equal(result.gated[0], gated)
+    # Each repeat passes the gate on its prediction (the speed rule gates it).
+    after = np.nonzero(np.diff(segment.t_s) > 20.0)[0]
+    assert after.size == 2 and np.all(gated[after])
+    assert np.all(ys[after] ** 2 / Ss[after] < GATE)
+    # As in the tests above: the same equations, within ~1e-12; 1e-8 for a margin.
+    np.testing.assert_allclose(result.innovation[0], ys, rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(result.scale[0], scales, rtol=1e-8)
+    assert result.log_likelihood[0] == pytest.approx(node_ll, rel=1e-9)
+
+
 def test_the_defaults_keep_the_fixed_r_likelihood():
     """Without variances, adaptation and gate: R fixed, nothing gated, the scale stays 1."""
     _, segment, _ = _run(12, 300)

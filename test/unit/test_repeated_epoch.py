@@ -1,14 +1,18 @@
 """A receiver's repeated epoch: the last fused position again while the track moves."""
 
 import dataclasses
+import math
 
 from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
-from kf_train.filters import numba_available
+from kf_train.estimator import fusion
+from kf_train.filters import moved_past, numba_available
 import numpy as np
 import pytest
 
 NS = 1_000_000_000
 GIVEN_M2 = 3.0          # the variance each fix carries; the learned R is far lower
+GATE = 15.136705226623606      # χ²(1) at 0.9999: the default gate
+OUTAGE_NS = 30 * NS
 JITS = [False] + ([True] if numba_available() else [])
 
 
@@ -95,3 +99,56 @@ def test_no_gate_no_repeat_rule():
     fixes = _cruise(rail, 300)
     rail.process(_stamp(300), fixes[-1], GIVEN_M2)
     assert rail.stats().rejections['repeated'] == 0
+
+
+@pytest.mark.parametrize('jit', JITS)
+def test_a_repeat_after_an_outage_is_rejected_though_it_passes_the_gate(jit):
+    # After 30 s without fixes the regimes spread over hundreds of metres (braking to a
+    # halt is among them), so the last fix again passes the gate even on the R in use;
+    # a train that was doing 20 m/s cannot be there.
+    estimator = StreamEstimator(EstimatorSettings(), jit=jit)
+    fixes = _cruise(estimator, 300)
+    after = _stamp(299) + OUTAGE_NS
+    with pytest.raises(Rejected) as raised:
+        estimator.process(after, fixes[-1], GIVEN_M2)
+    assert raised.value.reason == 'repeated'
+    assert raised.value.update.nis < GATE                   # the prediction's gate passes
+    assert 'cannot have stopped there' in str(raised.value)
+    step = estimator.process(after + NS // 5, 20.0 * (0.2 * 300 + 30.0), GIVEN_M2)
+    assert step.x[1] == pytest.approx(20.0, abs=0.5)          # on it goes, no re-acquiring
+    assert estimator.stats().reacquisitions == 0
+
+
+def test_without_the_speed_rule_that_repeat_stops_the_train(monkeypatch):
+    monkeypatch.setattr(fusion, 'moved_past', lambda *args: False)
+    estimator = StreamEstimator(EstimatorSettings())
+    fixes = _cruise(estimator, 300)
+    step = estimator.process(_stamp(299) + OUTAGE_NS, fixes[-1], GIVEN_M2)
+    assert step.x[1] < 1.0                  # fused: "braked to a halt" 600 m back
+
+
+@pytest.mark.parametrize('jit', JITS)
+def test_a_standing_trains_position_held_through_an_outage_is_fused(jit):
+    estimator = StreamEstimator(EstimatorSettings(), jit=jit)
+    rng = np.random.default_rng(5)
+    for k in range(300):
+        z = 100.0 + 0.02 * float(rng.standard_normal())
+        estimator.process(_stamp(k), z, GIVEN_M2)
+    estimator.process(_stamp(299) + OUTAGE_NS, z, GIVEN_M2)    # the same fix, 30 s on
+    assert estimator.stats().rejections['repeated'] == 0
+
+
+def test_moved_past_is_the_least_travel_braking_at_the_limit():
+    # v⁻ = 2 m/s (a known speed), 0.2 s: it cannot stop, d = (2 - ½·3·0.2)·0.2 = 0.34 m.
+    d = 0.34
+    assert moved_past(2.0, 0.0, 0.2, d * d / GATE * (1.0 - 1e-9), GATE)
+    assert not moved_past(2.0, 0.0, 0.2, d * d / GATE * (1.0 + 1e-9), GATE)
+    # 30 s at 18 m/s, σ_v 0.1: v⁻ = 18 - √γ·0.1, it stops within dt after v⁻²/(2·3).
+    lower = 18.0 - math.sqrt(GATE * 0.01)
+    d = lower * lower / 6.0
+    assert d == pytest.approx(51.6, abs=0.1)
+    assert moved_past(18.0, 0.01, 30.0, d * d / GATE * (1.0 - 1e-9), GATE)
+    assert not moved_past(18.0, 0.01, 30.0, d * d / GATE * (1.0 + 1e-9), GATE)
+    # A speed whose lower bound is 0 or below may have stopped anywhere: never.
+    assert not moved_past(0.3, 0.01, 30.0, 1e-12, GATE)
+    assert not moved_past(0.0, 0.0, 30.0, 0.0, GATE)
