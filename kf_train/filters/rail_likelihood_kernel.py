@@ -39,7 +39,7 @@ from kf_train.filters.noise_adaptation import (
 from kf_train.filters.rail_dynamics import RelaxationNoise
 from kf_train.filters.rail_fast import FastRailModel
 from kf_train.filters.rail_kernels import (
-    bound_acceleration, dynamics, hold_velocity, LOG_2PI, NON_FINITE, OK, transition)
+    bound_acceleration, combine, dynamics, hold_velocity, LOG_2PI, NON_FINITE, OK, transition)
 from kf_train.filters.rail_model import moved_past, RailModel, RailModelParameters
 import numba
 import numpy as np
@@ -74,18 +74,10 @@ _moved_past = _jit(moved_past)
 
 
 @_jit
-def _moved_past_last(means, covs, probabilities, dt, R, threshold):
-    """Return moved_past of the mixture at the last fused fix (imm_stack.combine's x, P)."""
-    x0, x1 = 0.0, 0.0
-    for j in range(means.shape[0]):
-        x0 += probabilities[j] * means[j, 0]                        # x = Σ μ_j x_j
-        x1 += probabilities[j] * means[j, 1]
-    pxx, pvv = 0.0, 0.0
-    for j in range(means.shape[0]):
-        d0, d1 = means[j, 0] - x0, means[j, 1] - x1
-        pxx += probabilities[j] * (covs[j, 0, 0] + d0 * d0)         # Σ μ_j (P_j + d dᵀ)
-        pvv += probabilities[j] * (covs[j, 1, 1] + d1 * d1)
-    return _moved_past(x1, pvv, dt, pxx + R, threshold)
+def _moved_past_last(means, covs, probabilities, dt, R, threshold, x, P):
+    """Return moved_past of the mixture at the last fused fix (x, P: scratch arrays)."""
+    combine(means, covs, probabilities, x, P)                       # the node's (x, P)
+    return _moved_past(x[1], P[1, 1], dt, P[0, 0] + R, threshold)
 
 
 @_jit
@@ -319,7 +311,7 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
         # and on the speed at the last fix (Fusion._reject_repeat), not fused, as gated.
         repeat = s_now < 1.0 and z[row] == last_z[k] and (
             y * (y / S) > threshold or _moved_past_last(
-                means[k], covs[k], probabilities[k], dt, R, threshold))
+                means[k], covs[k], probabilities[k], dt, R, threshold, x0, P0))
         ys[k, row - 1], Ss[k, row - 1] = y, S
         if repeat or gate_nis > threshold:
             total[k] += -0.5 * (threshold + math.log(gate_S) + LOG_2PI)
