@@ -6,8 +6,16 @@ from elsewhere does too: ``spin()`` ends with ``ExternalShutdownException``. A C
 before ``rclpy.init`` arrives as ``KeyboardInterrupt``. Each ends the node with exit
 code 0 and no traceback. An invalid parameter at start-up prints one line naming
 the parameter and what it accepts, and exits with code 2.
+
+After a signal, the clean-up (the node's and the context's DDS teardown) gets
+CLEANUP_TIMEOUT_S: a teardown that has not returned by then (seen in rclpy's
+``destroy_node`` after SIGTERM, rarely, on loaded machines; ros2/rclpy#456 and related)
+ends the process with code 0 and one warning line, instead of leaving a stopped node
+hanging until it is killed (:func:`exit_if_stuck`).
 """
 
+import contextlib
+import os
 import re
 import signal
 import sys
@@ -28,6 +36,9 @@ from rclpy.task import Future
 RCLError = rclpy_implementation.RCLError
 EXIT_OK = 0
 EXIT_BAD_PARAMETER = 2
+CLEANUP_TIMEOUT_S = 5.0
+"""How long the clean-up after a signal may take; within ``ros2 launch``'s 5 s before it
+escalates SIGINT to SIGTERM, a normal one takes well under a second."""
 
 
 class StartupError(Exception):
@@ -49,6 +60,7 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
     rclpy.init(args=args)
     sigint.context_shut_down_first = True   # rclpy's handler (init's) comes before it
     node = None
+    signalled = False
     try:
         node = make_node()
         executor = SingleThreadedExecutor()
@@ -60,26 +72,60 @@ def run(make_node: Callable[[], Node], args: Optional[List[str]] = None,
             executor.spin()
         return EXIT_OK
     except (KeyboardInterrupt, ExternalShutdownException):
+        signalled = True
         return EXIT_OK
     except RCLError:
         # SIGTERM shuts the context down from rclpy's signal handler; if that lands
         # between spin()'s shutdown check and its wait set, rcl raises instead.
         if rclpy.ok():
             raise
+        signalled = True
         return EXIT_OK
     except (InvalidParameterValueException, InvalidParameterTypeException,
             ParameterError, StartupError) as error:
         print(f'error: {one_line(error)}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     finally:
-        if isinstance(executor, SingleThreadedExecutor):
-            # Explicitly, not in Executor.__del__ at exit: that prints "Exception ignored
-            # ... InvalidHandle" with a traceback after a SIGINT.
-            executor.shutdown(timeout_sec=0)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        with exit_if_stuck(CLEANUP_TIMEOUT_S, armed=signalled):
+            if isinstance(executor, SingleThreadedExecutor):
+                # Explicitly, not in Executor.__del__ at exit: that prints "Exception
+                # ignored ... InvalidHandle" with a traceback after a SIGINT.
+                executor.shutdown(timeout_sec=0)
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
         sigint.restore()
+
+
+@contextlib.contextmanager
+def exit_if_stuck(timeout_s: float, armed: bool = True):
+    """
+    Run the block; if it has not finished after timeout_s, end the process with exit 0.
+
+    For the clean-up after a signal only (``armed``): the node has stopped as asked,
+    and a DDS teardown that never returns must not keep it alive. A daemon timer
+    thread flushes the standard streams, prints one warning line and calls os._exit.
+    """
+    if not armed:
+        yield
+        return
+    timer = threading.Timer(timeout_s, _exit_stuck, (timeout_s,))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+def _exit_stuck(timeout_s: float) -> None:
+    """End the process with EXIT_OK after a clean-up that did not return (exit_if_stuck)."""
+    try:
+        sys.stdout.flush()
+        print(f'warning: the clean-up after the signal did not finish within {timeout_s:g} s '
+              '(a DDS teardown that did not return); exiting', file=sys.stderr, flush=True)
+    finally:
+        os._exit(EXIT_OK)
 
 
 class _InterruptOnce:
@@ -239,11 +285,14 @@ def _run_other_executor(make_node: Callable[[], Node], args: Optional[List[str]]
         print(f'error: {one_line(error)}', file=sys.stderr)
         return EXIT_BAD_PARAMETER
     finally:
-        if executor is not None:
-            executor.shutdown(timeout_sec=SPIN_SLICE_S)
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+        # A signal completes ``stop`` with its number; the node's own end with 0.
+        signalled = stop.done() and stop.result() in previous
+        with exit_if_stuck(SPIN_SLICE_S + CLEANUP_TIMEOUT_S, armed=signalled):
+            if executor is not None:
+                executor.shutdown(timeout_sec=SPIN_SLICE_S)
+            if node is not None:
+                node.destroy_node()
+            rclpy.try_shutdown()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
 
