@@ -66,8 +66,8 @@ from kf_train import filters
 from kf_train.batch.noise_likelihood import Segment
 from kf_train.filters import (
     bound_acceleration, combine, first_jump_row, hold_velocity, LOG_2PI, MODE_NAMES,
-    moved_past, NoiseAdaptation, NoiseScale, numba_available, RailModel, RailModelParameters,
-    RateTransition, stop_probability, STOPPING)
+    moved_past, NoiseAdaptation, NoiseScale, numba_available, position_walked, RailModel,
+    RailModelParameters, RateTransition, stop_probability, STOPPING)
 import numpy as np
 
 STAND = MODE_NAMES.index('stand')
@@ -274,6 +274,7 @@ class _Model:
     def __init__(self, base: RailModelParameters, noise):
         """Keep the entry rule, rates, unit matrices and the noises q_a, q_ℓ, q_c (K,)."""
         self.base = base
+        self.walk = base.error_walk()                # the receiver's error walk: the node's
         self.entry, self.rates = _entry(RailModel(base)), RateTransition(base.rates())
         self.stop_rates = base.rates()
         self.units, self.bases = _UnitModels(base), {}
@@ -339,12 +340,13 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
     means, covs, probabilities = _first(model.base, float(z[0]), reported[:, 0])
     identity = np.tile(np.eye(6), (count, 4, 1, 1))
     noises = [FIXED] * count
-    scale = np.ones(count)
+    scale, walk = np.ones(count), np.zeros(count)
     last_t, last_z = np.full(count, t[0]), np.full(count, z[0])
     for k in range(rows):
         r = reported[:, k + 1]
-        cbar, predicted_x, predicted_P = _predict_all(model, t[k + 1] - last_t, means, covs,
-                                                      probabilities)
+        dts = t[k + 1] - last_t
+        cbar, predicted_x, predicted_P = _predict_all(model, dts, means, covs, probabilities)
+        predicted_P = position_walked(predicted_P, dts[:, None], walk[:, None])  # RailModel's
         R = np.where(scale == 1.0, r, r * scale)                     # noise_in_use: s r
         x, P, y, s = _update(predicted_x, predicted_P, float(z[k + 1]), R, identity)
         x = hold_velocity(bound_acceleration(x, P), P)                # |a| bound, no reversal
@@ -367,11 +369,12 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
         probabilities = np.where(fused[:, None], posterior, probabilities)
         last_t = np.where(fused, t[k + 1], last_t)
         last_z = np.where(fused, z[k + 1], last_z)
-        if adaptation is not None:
-            for i in np.nonzero(fused)[0].tolist():      # the node's own rule, fix by fix
-                noises[i] = adaptation.learn(noises[i], float(ybar[i]), float(S[i]),
-                                             float(r[i]))
-                scale[i] = noises[i].scale
+        for i in np.nonzero(fused)[0].tolist():          # the node's own rules, fix by fix
+            noise = noises[i]
+            if adaptation is not None:
+                noise = adaptation.learn(noise, float(ybar[i]), float(S[i]), float(r[i]))
+            noises[i] = model.walk.learn(noise, float(ybar[i]), float(S[i]), float(R[i]))
+            scale[i], walk[i] = noises[i].scale, noises[i].walk_m2_per_s
         result.scale[:, k] = scale
     if not (np.all(np.isfinite(means)) and np.all(np.isfinite(covs))):
         raise ValueError('the rail filter produced a non-finite state; a noise is too large')
@@ -424,7 +427,8 @@ def _compiled_pass(segment: Segment, model: _Model, reported: np.ndarray, noise,
     if N < 2:
         return result
     state = _first(model.base, float(segment.z[0, 0]), reported[:, 0]) + (
-        np.tile(np.array([1.0, 0.0, 0.0]), (count, 1)), np.full(count, segment.t_s[0]),
+        np.tile(np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0]), (count, 1)),
+        np.full(count, segment.t_s[0]),
         np.full(count, float(segment.z[0, 0])))
 
     def unit_matrices(dt_s: float):

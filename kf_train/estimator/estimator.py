@@ -236,6 +236,16 @@ class StreamEstimator:
         fusion = self._fusion
         return None if fusion.x is None else self.model.noise_scale(fusion.x, fusion.P)
 
+    def error_walk_rate_hz(self) -> Optional[float]:
+        """
+        Return c, the learned rate of the measured position's error walk [1/s].
+
+        For the rail preset (``error_walk_rate_hz``, :mod:`kf_train.filters.error_walk`);
+        None for the other presets, and before the first measurement.
+        """
+        fusion = self._fusion
+        return None if fusion.x is None else self.model.error_walk_rate_hz(fusion.x, fusion.P)
+
     def predict_to(self, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
         """
         Return (x, P) predicted from the newest state to ``stamp_ns``; nothing changes.

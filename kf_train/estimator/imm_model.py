@@ -127,6 +127,10 @@ class IMMModel:
         """Return the learned scale on the measurement noise behind x (1: R as given)."""
         return self.state_of(x, P).noise.scale
 
+    def error_walk_rate_hz(self, x, P) -> Optional[float]:
+        """Return the IMM's learned error-walk rate behind x, or None (the error is white)."""
+        return self.imm.error_walk_rate_hz(self.state_of(x, P))
+
 
 def _forget(states: Dict[int, tuple], key: int):
     """Return the weak-reference callback that drops ``states[key]`` once its mean is freed."""

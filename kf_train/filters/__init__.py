@@ -24,6 +24,7 @@ from kf_train.filters.contract import PredictThenUpdate, regime_columns, StepMod
 from kf_train.filters.ekf import (
     ekf_update, ExtendedKalmanFilter, ExtendedModel, FunctionMeasurement, RangeBearing, TWO_PI,
     wrap_angle)
+from kf_train.filters.error_walk import ErrorWalk, position_walked
 from kf_train.filters.family import (
     check_kind, DEFAULT_PARTICLES, Filter, FILTER_KINDS, FilterOptions, gaussian_model,
     GaussianFilter, make_filter, PARTICLE_KINDS, ParticlePresetFilter)
@@ -65,8 +66,9 @@ __all__ = [
     'check_transition_matrix', 'chi2_cdf', 'chi2_mean_bounds', 'chi2_quantile', 'chi2_sf',
     'closed_form', 'combine', 'constant_velocity_F', 'constant_velocity_model',
     'ConstantVelocityModel', 'COVARIANCE_RTOL', 'DEFAULT_ALPHA', 'DEFAULT_BETA', 'DEFAULT_KAPPA',
-    'DEFAULT_PARTICLES', 'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ExtendedKalmanFilter',
-    'ExtendedModel', 'FastRailModel', 'FastRun', 'FastTrainFilter', 'FastUpdate', 'Filter',
+    'DEFAULT_PARTICLES', 'DEFAULT_RESAMPLE_THRESHOLD', 'ekf_update', 'ErrorWalk',
+    'ExtendedKalmanFilter', 'ExtendedModel', 'FastRailModel', 'FastRun', 'FastTrainFilter',
+    'FastUpdate', 'Filter',
     'FILTER_KINDS', 'first_jump_row',
     'FilterOptions', 'FixedTransition', 'FunctionMeasurement', 'gaussian_model', 'GaussianFilter',
     'bound_acceleration', 'hold_velocity', 'IMM', 'IMMFilter', 'IMMState', 'jit_enabled',
@@ -78,6 +80,7 @@ __all__ = [
     'MODE_NAMES', 'moved_past', 'noise_terms_function', 'NoiseModel', 'NS_PER_S',
     'optimal_bandwidth',
     'PARTICLE_KINDS', 'ParticleFilter', 'ParticlePresetFilter', 'per_step_noise_terms',
+    'position_walked',
     'per_step_periods', 'per_step_weights', 'PerStepNoise', 'POSITION_H', 'predict',
     'PredictThenUpdate',
     'ProcessNoise', 'psd_factor', 'rail_model', 'RailModel', 'RailModelParameters',

@@ -87,6 +87,9 @@ class StepModel(Protocol):
     def noise_scale(self, x: np.ndarray, P: np.ndarray) -> Optional[float]:
         """Return the learned scale on R behind (x, P), or None (R as given)."""
 
+    def error_walk_rate_hz(self, x: np.ndarray, P: np.ndarray) -> Optional[float]:
+        """Return the learned rate of the measured position's error walk, or None (none)."""
+
     def measuring(self, index: int) -> Optional['StepModel']:
         """Return the model measuring state ``index`` directly, or None if it cannot."""
 
@@ -116,6 +119,10 @@ class PredictThenUpdate:
 
     def noise_scale(self, x, P) -> None:
         """Return None: R is used as given."""
+        return None
+
+    def error_walk_rate_hz(self, x, P) -> None:
+        """Return None: the measurement error is white."""
         return None
 
     def measuring(self, index: int) -> None:

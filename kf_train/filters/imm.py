@@ -207,9 +207,8 @@ def _noise_row(R) -> np.ndarray:
     """
     Return the row (1,) of a 1x1 measurement noise R, checked as as_covariance does.
 
-    The estimator's R, a checked (1, 1) float array, passes as it is (its row is a view):
-    R keeps its shape from the estimator to the stacked update, which broadcasts it
-    over the modes.
+    The estimator's checked (1, 1) float R passes as it is (a view of its row), and the
+    stacked update broadcasts it over the modes.
     """
     if type(R) is np.ndarray and R.shape == (1, 1) and R.dtype == np.float64 and \
             0.0 <= R.item(0) < math.inf:
@@ -263,9 +262,7 @@ class IMM:
         if len(modes) < 1:
             raise ValueError('an IMM needs at least one mode')
         self.modes = tuple(modes)
-        self.transition = transition
-        self.entry = entry
-        self.mixing = mixing
+        self.transition, self.entry, self.mixing = transition, entry, mixing
         self.stochastic = bool(stochastic)
         names = tuple(mode_names) if mode_names is not None else tuple(
             f'mode{i}' for i in range(len(self.modes)))
@@ -372,6 +369,10 @@ class IMM:
         for j, mode in enumerate(self.modes):
             predicted_x[j], predicted_P[j] = mode.predict(means[j], covs[j], dt_s, u)
         return predicted_x, predicted_P
+
+    def error_walk_rate_hz(self, state: IMMState) -> Optional[float]:
+        """Return the learned rate of the measurement error's walk: None, it is white here."""
+        return None
 
     def predict_ahead(self, state: IMMState, dt_s: float, u=None
                       ) -> Tuple[np.ndarray, np.ndarray]:
@@ -556,8 +557,7 @@ class IMMFilter:
         """Return the combined covariance, a new array."""
         return self._estimate()[1].copy()
 
-    x = mean
-    P = covariance
+    x, P = mean, covariance
 
     def reset(self, x0=None, P0=None, probabilities=None) -> None:
         """Start again from (x0, P0) (the initial ones by default)."""

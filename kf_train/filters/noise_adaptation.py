@@ -55,7 +55,7 @@ Variance = TypeVar('Variance', np.ndarray, float)
 
 
 class NoiseScale(NamedTuple):
-    """The adaptation's state: the scale in use and the information behind it."""
+    """The learned measurement noise: the scale in use, what taught it, the error's walk."""
 
     scale: float = 1.0
     """s: the measurement noise in use is s times the variance given (1: as given)."""
@@ -63,6 +63,15 @@ class NoiseScale(NamedTuple):
     """J: the forgetting sum of the fixes' Fisher information about log s (0: none yet)."""
     count: int = 0
     """How many measurements have taught it (up to the window: then it stays there)."""
+    walk_m2_per_s: float = 0.0
+    """
+    The rail model's error walk since the last fused fix, c · s r [m²/s] (0: none;
+    :mod:`~kf_train.filters.error_walk`).
+    """
+    walk_gain: float = 0.0
+    """log(c / c₀): the walk's rate c as learned, against the rate it starts at."""
+    last_nu: float = 0.0
+    """The last fused fix's normalised innovation y/√S, clipped (0: none yet)."""
 
 
 FIXED = NoiseScale()
@@ -145,4 +154,5 @@ class NoiseAdaptation:
         information = information * (1.0 - 1.0 / self.window) + 0.5 * share * share
         step = min(max(score / information, -STEP_MAX), STEP_MAX)  # log s += u / J
         scale = min(max(state.scale * math.exp(step), self.scale_min), self.scale_max)
-        return NoiseScale(scale, information, min(state.count + 1, self.window))
+        return state._replace(scale=scale, information=information,
+                              count=min(state.count + 1, self.window))

@@ -143,9 +143,10 @@ class FastRailModel(RailModel):
             return super().predict(state, dt_s, u)
         dt_s = imm_stack.duration(dt_s)
         F, Q = self.dynamics(dt_s)
+        walk = state.noise.walk_m2_per_s * dt_s                     # RailModel.predict's
         means, covs, probabilities = self._arrays()
         _raise(self.kernels.predict(state.means, state.covariances, state.probabilities, dt_s,
-                                    F, Q, *self._constants, means, covs, probabilities),
+                                    F, Q, walk, *self._constants, means, covs, probabilities),
                'prediction')
         return IMMState(_read_only(means), _read_only(covs), _read_only(probabilities),
                         state.noise)
@@ -162,23 +163,28 @@ class FastRailModel(RailModel):
         """
         dt_s = imm_stack.duration(dt_s)
         z, reported, selected, learn = self._measurement(z, R, index)
+        reported_m2 = float(reported[0])
+        in_use_m2 = noise_in_use(reported_m2, state.noise, learn)
         F, Q = self.dynamics(dt_s)
-        horizon_s = self._ahead_s
+        horizon_s, ahead_walk = self._ahead_s, 0.0
         if horizon_s is None:
             (ahead_F, ahead_Q), tables = (F, Q), self._no_ahead
         else:
             (ahead_F, ahead_Q), tables = self.dynamics(horizon_s), self.stop_finder.tables(
                 horizon_s)
-        reported_m2 = float(reported[0])
+            # Ahead of the new state: the walk after this fix (ErrorWalk.walk_after,
+            # known before the update); a speed leaves the last position fix's.
+            ahead_walk = horizon_s * (self.error_walk.walk_after(state.noise, in_use_m2)
+                                      if learn else state.noise.walk_m2_per_s)
         means, covs, posterior = self._arrays()
         n = self._stack.dim_x
         gain, x, P, ahead_x, ahead_P = (np.empty(n), np.empty(n), np.empty((n, n)),
                                         np.empty(n), np.empty((n, n)))
         y, S, nis, status, ahead_status = self.kernels.step(
-            state.means, state.covariances, state.probabilities, dt_s, F, Q, *self._constants,
-            z, selected, noise_in_use(reported_m2, state.noise, learn), ahead_F, ahead_Q,
-            self.stop_finder.tau_s, *tables, horizon_s is not None, means, covs, posterior,
-            gain, x, P, ahead_x, ahead_P)
+            state.means, state.covariances, state.probabilities, dt_s, F, Q,
+            state.noise.walk_m2_per_s * dt_s, *self._constants, z, selected, in_use_m2,
+            ahead_F, ahead_Q, ahead_walk, self.stop_finder.tau_s, *tables, horizon_s is not None,
+            means, covs, posterior, gain, x, P, ahead_x, ahead_P)
         _raise(status, 'update')
         updated, result = self.finish_update(state, means, covs, posterior,
                                              (y, S, nis, gain), reported_m2, learn)
@@ -248,7 +254,8 @@ class FastRailModel(RailModel):
         n = self._stack.dim_x
         x, P = np.empty(n), np.empty((n, n))
         _raise(self.kernels.ahead(state.means, state.covariances, state.probabilities, F, Q,
-                                  self._constants[1], stops.tau_s, *stops.tables(dt_s), x, P),
+                                  state.noise.walk_m2_per_s * dt_s, self._constants[1],
+                                  stops.tau_s, *stops.tables(dt_s), x, P),
                'prediction')
         return x, P
 

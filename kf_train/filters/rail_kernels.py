@@ -113,15 +113,16 @@ def dynamics(dt_s, tau_s, stand_noise, capability_noise, stand_F, phi2_series, p
 
 
 @_jit
-def predict(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
+def predict(means, covs, probabilities, dt_s, F, Q, walk, rates, stopping, stop_rate_hz,
             stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, out_x, out_P,
             out_probabilities):
     """
     Write the rail IMM's prediction over dt_s into out_x, out_P, out_probabilities.
 
     Π(dt) with the state's -> stand rates, the mixing of the components as they enter
-    each regime (the gather tables), x⁻ = F x0, P⁻ = F P0 Fᵀ + Q, symmetrised. Returns
-    the status (arrays are written into arguments: returning them costs more than the step).
+    each regime (the gather tables), x⁻ = F x0, P⁻ = F P0 Fᵀ + Q, symmetrised, + the
+    error walk ``walk`` = w dt on P_pp (RailModel.predict). Returns the status (arrays
+    are written into arguments: returning them costs more than the step).
     """
     count, n = means.shape
     matrix = transition(means, covs, dt_s, rates, stopping, stop_rate_hz, stop_speed_mps)
@@ -157,7 +158,7 @@ def predict(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_h
                     d_a, d_b = xs[i, a] - x0[a], xs[i, b] - x0[b]
                     total += weights[i, j] * (Ps[i, a * n + b] + d_a * d_b)
                 P0[a, b] = total                              # Σ_i ω_ij (P_ji + d dᵀ)
-        _propagate(x0, P0, F[j], Q[j], out_x[j], out_P[j], True)
+        _propagate(x0, P0, F[j], Q[j], walk, out_x[j], out_P[j], True)
     total = 0.0
     for j in range(count):
         total += cbar[j]
@@ -167,8 +168,8 @@ def predict(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_h
 
 
 @_jit
-def _propagate(x, P, F, Q, out_x, out_P, symmetrise):
-    """Write x⁻ = F x and P⁻ = F P Fᵀ + Q (symmetrised if asked) into out_x, out_P."""
+def _propagate(x, P, F, Q, walk, out_x, out_P, symmetrise):
+    """Write x⁻ = F x and P⁻ = F P Fᵀ + Q (symmetrised if asked) + walk on P_pp."""
     n = x.shape[0]
     FP = np.empty((n, n))
     for a in range(n):
@@ -189,6 +190,7 @@ def _propagate(x, P, F, Q, out_x, out_P, symmetrise):
             out_P[a, c] = total + Q[a, c]
     if symmetrise:
         _symmetrise(out_P)
+    out_P[0, 0] += walk                              # the receiver's error walk, w dt
 
 
 @_jit
@@ -243,14 +245,14 @@ def update(means, covs, probabilities, z, selected, R, out_x, out_P, out_posteri
 
 
 @_jit
-def predict_update(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
-                   stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, z, selected,
-                   R, out_x, out_P, out_posterior, out_gain):
+def predict_update(means, covs, probabilities, dt_s, F, Q, walk, rates, stopping,
+                   stop_rate_hz, stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P,
+                   z, selected, R, out_x, out_P, out_posterior, out_gain):
     """Do :func:`update` after :func:`predict`, in one call: returns (y, S, NIS, status)."""
     count, n = means.shape
     predicted_x, predicted_P = np.empty((count, n)), np.empty((count, n, n))
     predicted_probabilities = np.empty(count)
-    if predict(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
+    if predict(means, covs, probabilities, dt_s, F, Q, walk, rates, stopping, stop_rate_hz,
                stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, predicted_x,
                predicted_P, predicted_probabilities) != OK:
         return 0.0, 0.0, 0.0, PREDICTION_NON_FINITE
@@ -259,29 +261,30 @@ def predict_update(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop
 
 
 @_jit
-def step(means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz,
+def step(means, covs, probabilities, dt_s, F, Q, walk, rates, stopping, stop_rate_hz,
          stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, z, selected, R,
-         ahead_F, ahead_Q, tau_s, phi1, phi2, first, steps, with_ahead, out_x, out_P,
-         out_posterior, out_gain, x, P, ahead_x, ahead_P):
+         ahead_F, ahead_Q, ahead_walk, tau_s, phi1, phi2, first, steps, with_ahead, out_x,
+         out_P, out_posterior, out_gain, x, P, ahead_x, ahead_P):
     """
     Do a live step in one call: :func:`predict_update`, then :func:`combine` and :func:`ahead`.
 
     The estimate (x, P) and, if ``with_ahead``, the prediction ahead (ahead_x, ahead_P,
-    over ahead_F, ahead_Q and the StopFinder's tables) of the updated state, written by
-    the very kernels a separate call runs (so their numbers are those to the bit).
+    over ahead_F, ahead_Q, ahead_walk and the StopFinder's tables) of the updated state,
+    written by the very kernels a separate call runs (so their numbers are those to the
+    bit).
     Returns (y, S, NIS, status, the prediction's status).
     """
     y, S, nis, status = predict_update(
-        means, covs, probabilities, dt_s, F, Q, rates, stopping, stop_rate_hz, stop_speed_mps,
-        index_x, factor_x, index_P, factor_P, noise_P, z, selected, R, out_x, out_P,
-        out_posterior, out_gain)
+        means, covs, probabilities, dt_s, F, Q, walk, rates, stopping, stop_rate_hz,
+        stop_speed_mps, index_x, factor_x, index_P, factor_P, noise_P, z, selected, R, out_x,
+        out_P, out_posterior, out_gain)
     if status != OK:
         return y, S, nis, status, OK
     combine(out_x, out_P, out_posterior, x, P)
     ahead_status = OK
     if with_ahead:
-        ahead_status = ahead(out_x, out_P, out_posterior, ahead_F, ahead_Q, stopping, tau_s,
-                             phi1, phi2, first, steps, ahead_x, ahead_P)
+        ahead_status = ahead(out_x, out_P, out_posterior, ahead_F, ahead_Q, ahead_walk,
+                             stopping, tau_s, phi1, phi2, first, steps, ahead_x, ahead_P)
     return y, S, nis, status, ahead_status
 
 
@@ -381,7 +384,8 @@ def hold_velocity(means, covs):
 
 
 @_jit
-def ahead(means, covs, probabilities, F, Q, stopping, tau_s, phi1, phi2, first, steps, x, P):
+def ahead(means, covs, probabilities, F, Q, walk, stopping, tau_s, phi1, phi2, first, steps, x,
+          P):
     """
     Write the 2-s prediction's mixture (x, P): RailModel.predict_ahead; return the status.
 
@@ -392,7 +396,7 @@ def ahead(means, covs, probabilities, F, Q, stopping, tau_s, phi1, phi2, first, 
     count, n = means.shape
     out_x, out_P = np.empty((count, n)), np.empty((count, n, n))
     for j in range(count):
-        _propagate(means[j], covs[j], F[j], Q[j], out_x[j], out_P[j], False)
+        _propagate(means[j], covs[j], F[j], Q[j], walk, out_x[j], out_P[j], False)
         if stopping[j]:
             _hold(means[j], out_x[j], tau_s, phi1, phi2, first, steps)
     return combine(out_x, out_P, probabilities, x, P)

@@ -34,6 +34,7 @@ optional: this module loads on first use (:mod:`kf_train.filters`' ``_LAZY``).
 import math
 from typing import Callable, Tuple
 
+from kf_train.filters.error_walk import NU_CLIP
 from kf_train.filters.noise_adaptation import (
     CLIP_NIS, CLIPPED_NIS_MEAN, NoiseAdaptation, STEP_MAX)
 from kf_train.filters.rail_dynamics import RelaxationNoise
@@ -98,8 +99,23 @@ def _matrices(dt, series_dt, tau_s, stand_F, phi2, phi3, below, table_a, table_l
 
 
 @_jit
-def _noise(Qa, Ql, q_a, q_l, q_c, stand_noise, dt, Q):
-    """Write Q = q_a Q_a + q_ℓ Q_ℓ + q_c dt on A, B (every regime), + stand_noise dt on p."""
+def _learn_walk(noise, y, S, R, rate_hz, learning_rate, low, high):
+    """Update ``noise`` [.., w, log(c/c₀), ν] after a fused fix weighed with R: ErrorWalk.learn."""
+    if rate_hz <= 0.0:
+        return
+    nu = min(max(y / math.sqrt(S), -NU_CLIP), NU_CLIP)
+    noise[3] = rate_hz * math.exp(noise[4]) * R                # the walk after it: c s r
+    noise[4] = min(max(noise[4] + learning_rate * nu * noise[5], low), high)
+    noise[5] = nu
+
+
+@_jit
+def _noise(Qa, Ql, q_a, q_l, q_c, stand_noise, walk, dt, Q):
+    """
+    Write Q = q_a Q_a + q_ℓ Q_ℓ + q_c dt on A, B (every regime), + stand_noise dt on p.
+
+    ``walk`` the receiver's error walk w dt on every regime's p (RailModel.predict).
+    """
     modes, n = Q.shape[0], Q.shape[1]
     for j in range(modes):
         for a in range(n):
@@ -107,6 +123,7 @@ def _noise(Qa, Ql, q_a, q_l, q_c, stand_noise, dt, Q):
                 Q[j, a, b] = q_a * Qa[j, a, b] + q_l * Ql[j, a, b]
         Q[j, 4, 4] += q_c * dt
         Q[j, 5, 5] += q_c * dt
+        Q[j, 0, 0] += walk
     Q[0, 0, 0] += stand_noise * dt
 
 
@@ -265,7 +282,9 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
 
     Where it stopped goes to ``progress`` (next_row, status, need_dt). A gated fix adds
     −½(γ + log S_gate + log 2π) and leaves the state as it was; a fused one adds
-    log Σ_j c̄_j N(y_j; s_j) and teaches s.
+    log Σ_j c̄_j N(y_j; s_j) and teaches s and the error walk. ``adaptation``: the
+    NoiseAdaptation's (window, prior, scale_min, scale_max), then the ErrorWalk's
+    (rate_hz, learning_rate, bounds of log(c/c₀)).
     """
     tau_s, stand_F, phi2, phi3, below, table_a, table_l, scale, powers = dynamics_constants
     rates, stopping, stop_rate_hz, stop_speed_mps, sources, factors, noises, ell = \
@@ -295,7 +314,7 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
                 status[k] = NEED_MATRICES
                 break
             F, Qa, Ql = F_own, Qa_own, Ql_own
-        _noise(Qa, Ql, q_a[k], q_l[k], q_c[k], stand_noise, dt, Q)
+        _noise(Qa, Ql, q_a[k], q_l[k], q_c[k], stand_noise, noise[k, 3] * dt, dt, Q)
         _predict(means[k], covs[k], probabilities[k], dt, F, Q, rates, stopping, stop_rate_hz,
                  stop_speed_mps, sources, factors, noises, ell, px, pP, pc, weights, xs, x0,
                  P0, GP)
@@ -324,6 +343,8 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
             probabilities[k] = posterior
             _learn(noise[k], y, S, r, adaptation[0], adaptation[1], adaptation[2],
                    adaptation[3])
+            _learn_walk(noise[k], y, S, R, adaptation[4], adaptation[5], adaptation[6],
+                        adaptation[7])
             last_t[k] = t[row]
             last_z[k] = z[row]
         scales[k, row - 1] = noise[k, 0]
@@ -394,8 +415,9 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     Run every setting over a whole segment, chunk by chunk, adding the big dts it asks for.
 
     ``reported`` (K, N) the variances given, ``noises`` (q_a, q_ℓ, q_c) each (K,),
-    ``state`` (means, covs, probabilities, noise (K, 3), last fused stamp and position
-    (K,)) after the first fix, ``outputs`` (ℓ (K,), gated count (K,), y, S, gated,
+    ``state`` (means, covs, probabilities, noise (K, 6): s, J, count, then the error
+    walk's w, log(c/c₀), ν; last fused stamp and position (K,)) after the first fix,
+    ``outputs`` (ℓ (K,), gated count (K,), y, S, gated,
     scale (K, N − 1)), in place.
     Raises ValueError for a non-finite state (a noise too large).
     """
@@ -404,8 +426,10 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     steps = np.diff(t_s)
     big = _BigDts(unit_matrices)
     big.add(steps[steps > series_dt])
-    learning = np.array([float(adaptation.window), float(adaptation.prior),
-                         adaptation.scale_min, adaptation.scale_max])
+    walk = parameters.error_walk()
+    learning = np.array((float(adaptation.window), float(adaptation.prior),
+                         adaptation.scale_min, adaptation.scale_max, walk.rate_hz,
+                         walk.learning_rate) + (walk.bounds if walk.enabled else (0.0, 0.0)))
     progress = (np.ones(count, dtype=np.int64), np.zeros(count, dtype=np.int64),
                 np.zeros(count))
     chunk = min(_CHUNK, N - 1)
@@ -473,7 +497,8 @@ def warm_up() -> None:
     count, rows = 1, t.shape[0] - 1
     state = (np.tile(np.array([0.0, 0.0, 0.0, 0.0, 0.8, 0.9]), (count, 4, 1)),
              np.tile(parameters.initial_covariance(1.0), (count, 4, 1, 1)),
-             np.full((count, 4), 0.25), np.array([[1.0, 0.0, 0.0]]), np.zeros(count),
+             np.full((count, 4), 0.25), np.array([[1.0, 0.0, 0.0, 0.0, 0.0, 0.0]]),
+             np.zeros(count),
              np.zeros(count))
     outputs = (np.zeros(count), np.zeros(count, dtype=np.int64), np.zeros((count, rows)),
                np.zeros((count, rows)), np.zeros((count, rows), dtype=np.bool_),

@@ -31,6 +31,11 @@ What is known about trains, and how the model uses it:
   the scale learned from the innovations (:mod:`~kf_train.filters.noise_adaptation`,
   ``noise_window``); a fix is gated with the variance given, so only a fix the
   receiver's own accuracy cannot explain is an outlier.
+* **The receiver's error is slow.** After a fix weighed with R = s r the measured
+  position walks by c · s r per second in every regime, c learned from whether
+  successive innovations agree (:mod:`~kf_train.filters.error_walk`,
+  ``error_walk_rate_hz``): a receiver that filters its output is followed, white
+  noise is not.
 * **Trains do not reverse.** The prediction ahead (:meth:`RailModel.predict_ahead`)
   follows each regime's mean path and holds the train where its velocity reaches 0,
   so no regime predicts going backwards, and the mixture's predicted position is
@@ -52,7 +57,10 @@ import math
 from typing import Dict, Optional, Tuple
 
 from kf_train.filters import imm_stack
-from kf_train.filters.imm import first_jump_row, IMM, IMMFilter, IMMState, RateTransition
+from kf_train.filters.error_walk import ErrorWalk, position_walked
+from kf_train.filters.imm import (
+    first_jump_row, IMM, IMMFilter, IMMState, noise_in_use, RateTransition)
+from kf_train.filters.kalman import UpdateResult
 from kf_train.filters.models import LinearModel
 from kf_train.filters.noise_adaptation import NoiseAdaptation
 from kf_train.filters.rail_dynamics import (
@@ -138,6 +146,18 @@ class RailModelParameters:
     """Lower bound of the learned scale on R."""
     noise_scale_max: float = NoiseAdaptation.scale_max
     """Upper bound of the learned scale on R."""
+    error_walk_rate_hz: float = ErrorWalk.rate_hz
+    """
+    The receiver's slow error: the measured position walks by c · s r per second after
+    a fix weighed with R = s r, c starting here and learned [1/s]; 0: the error is white
+    (:mod:`~kf_train.filters.error_walk`).
+    """
+    error_walk_learning_rate: float = ErrorWalk.learning_rate
+    """η: how fast c is learned from successive innovations (0: c stays where it starts)."""
+    error_walk_rate_min_hz: float = ErrorWalk.rate_min_hz
+    """Lower bound of the learned c [1/s]."""
+    error_walk_rate_max_hz: float = ErrorWalk.rate_max_hz
+    """Upper bound of the learned c [1/s]."""
 
     def __post_init__(self):
         """Check every figure: finite, >= 0, and > 0 where it divides."""
@@ -152,11 +172,17 @@ class RailModelParameters:
         if not self.noise_window.is_integer():
             raise ValueError(f'noise_window must be a whole number, got {self.noise_window}')
         self.adaptation()  # raises ValueError for bounds out of order
+        self.error_walk()
 
     def adaptation(self) -> NoiseAdaptation:
         """Return how the measurement-noise scale is learned (noise_window 0: not at all)."""
         return NoiseAdaptation(window=int(self.noise_window), scale_min=self.noise_scale_min,
                                scale_max=self.noise_scale_max)
+
+    def error_walk(self) -> ErrorWalk:
+        """Return how the receiver's error walks (error_walk_rate_hz 0: not at all)."""
+        return ErrorWalk(self.error_walk_rate_hz, self.error_walk_learning_rate,
+                         self.error_walk_rate_min_hz, self.error_walk_rate_max_hz)
 
     def rates(self) -> np.ndarray:
         """Return the switching rates [1/s], rates[i, j] from mode i to j (stop excluded)."""
@@ -318,7 +344,9 @@ class RailModel(IMM):
     only, each of them a method here and the one code that runs: :meth:`transition`
     (Π(dt) with the state's -> stand rates), :meth:`mix_entering` (the mixing,
     components entering a regime by :meth:`entry`'s rule) and :meth:`matrices` (the
-    regimes' stacked F, Q); and it has its own :meth:`predict_ahead` (no reversal).
+    regimes' stacked F, Q); and it has its own :meth:`predict_ahead` (no reversal), and
+    :meth:`predict` and :meth:`finish_update` for the receiver's error walk
+    (:mod:`~kf_train.filters.error_walk`).
     """
 
     def __init__(self, parameters: RailModelParameters = RailModelParameters()):
@@ -333,6 +361,7 @@ class RailModel(IMM):
                          MODE_NAMES, self.entry, mixing=self.mix_entering,
                          matrices=self.matrices, stochastic=True,
                          adaptation=parameters.adaptation())
+        self.error_walk = parameters.error_walk()
         self._stops = StopFinder(parameters.response_time_s, relaxation_transition, _phi)
 
     def _slow(self, state: IMMState, regime: int) -> float:
@@ -414,6 +443,37 @@ class RailModel(IMM):
         """
         return self._entry.enter(j, x, P)
 
+    def predict(self, state: IMMState, dt_s: float, u=None) -> IMMState:
+        """
+        Return IMM.predict, the position walking as the state says (``noise.walk_m2_per_s``).
+
+        IMM.predict_update predicts through this method, so a fused step and a
+        prediction then an update are the same numbers.
+        """
+        predicted = super().predict(state, dt_s, u)
+        covs = position_walked(predicted.covariances, imm_stack.duration(dt_s),
+                               state.noise.walk_m2_per_s)
+        if covs is predicted.covariances:
+            return predicted
+        covs.flags.writeable = False
+        return predicted._replace(covariances=covs)
+
+    def finish_update(self, prior: IMMState, means: np.ndarray, covariances: np.ndarray,
+                      posterior: np.ndarray, innovation: tuple, reported_m2: float,
+                      learn: bool) -> Tuple[IMMState, UpdateResult]:
+        """Return IMM.finish_update, a position fix also teaching the error walk."""
+        state, result = super().finish_update(prior, means, covariances, posterior,
+                                              innovation, reported_m2, learn)
+        if learn and self.error_walk.enabled:
+            noise = self.error_walk.learn(state.noise, innovation[0], innovation[1],
+                                          noise_in_use(reported_m2, prior.noise, True))
+            state = IMMState(state.means, state.covariances, state.probabilities, noise)
+        return state, result
+
+    def error_walk_rate_hz(self, state: IMMState) -> Optional[float]:
+        """Return c, the walk's rate learned up to ``state`` [1/s] (None: no walk)."""
+        return self.error_walk.rate(state.noise) if self.error_walk.enabled else None
+
     def update(self, state: IMMState, z, R=None):
         """Return the IMM's update, every regime's motion held (:meth:`_held`)."""
         return self._held(*super().update(state, z, R))
@@ -465,6 +525,7 @@ class RailModel(IMM):
             raise ValueError('u given to a model without control input')
         means, covs = imm_stack.predict(state.means, state.covariances, *self.matrices(dt_s),
                                         final=False)
+        covs = position_walked(covs, dt_s, state.noise.walk_m2_per_s)
         self.hold_paths(state, means, dt_s)
         x, P = imm_stack.combine(means, covs, state.probabilities)
         imm_stack.check_finite(x, P, 'prediction')

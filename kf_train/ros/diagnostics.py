@@ -197,9 +197,11 @@ def regime_values(estimator) -> List[Tuple[str, str]]:
 
     ``regime`` (the likeliest regime's name; ``unknown`` before the first measurement)
     and ``regime.<name>`` (its probability after the newest fused measurement, 4
-    decimals), and ``measurement_noise_scale``, the scale the model learned on R
-    (:meth:`~kf_train.estimator.StreamEstimator.noise_scale`). Nothing for a model
-    without regimes.
+    decimals), ``measurement_noise_scale``, the scale the model learned on R
+    (:meth:`~kf_train.estimator.StreamEstimator.noise_scale`), and
+    ``measurement_error_walk_rate_hz``, the rate it learned for the receiver's slow
+    error (:meth:`~kf_train.estimator.StreamEstimator.error_walk_rate_hz`). Nothing for
+    a model without regimes.
     """
     names = regime_names(estimator)
     if not names:
@@ -214,6 +216,9 @@ def regime_values(estimator) -> List[Tuple[str, str]]:
     scale = estimator.noise_scale()
     if scale is not None:  # the learned scale on R: visible as it adapts
         values.append(('measurement_noise_scale', f'{scale:.4g}'))
+    walk_rate_hz = estimator.error_walk_rate_hz()
+    if walk_rate_hz is not None:  # the receiver's slow error, learned: how fast it walks
+        values.append(('measurement_error_walk_rate_hz', f'{walk_rate_hz:.4g}'))
     return values
 
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 HORIZON_S = 2.0
-# The reference has no learned noise scale (test/imm_reference.py).
-FIXED_R = RailModelParameters(noise_window=0)
+# The reference has no learned noise scale and no error walk (test/imm_reference.py).
+FIXED_R = RailModelParameters(noise_window=0, error_walk_rate_hz=0.0)
 UNIT_ROUNDOFF = 2.0 ** -53
 # Roundings along the longest chain of one predict + update + 2-s prediction, per
 # component (inner products and sums count as Higham's γ_m = m·u): the transition row

@@ -113,7 +113,7 @@ def test_learning_off_keeps_r_as_given(run):
     for k in range(1, 50):
         filt.predict(float(t[k] - t[k - 1]))
         result = filt.update(float(z[k]))
-        assert filt.state.noise == NoiseScale()
+        assert filt.state.noise[:3] == NoiseScale()[:3]      # s, J, count: (the walk learns)
     assert result.innovation_covariance[0, 0] > 1.0   # S = H P Hᵀ + R, R = 1 exactly
 
 

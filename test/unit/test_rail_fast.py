@@ -30,11 +30,11 @@ RTOL = 1e-9
 RAIL = EstimatorSettings(preset='rail', history_s=2.0, gate_probability=0.999)
 
 
-def assert_close(actual, desired, what=''):
-    """Assert a norm-wise relative difference below RTOL (exact where desired is 0)."""
+def assert_close(actual, desired, what='', floor=0.0):
+    """Assert a norm-wise difference below RTOL × max(|desired|, floor) (exact where both 0)."""
     actual, desired = np.asarray(actual, dtype=float), np.asarray(desired, dtype=float)
     assert actual.shape == desired.shape, what
-    scale = np.max(np.abs(desired)) if desired.size else 0.0
+    scale = max(np.max(np.abs(desired)) if desired.size else 0.0, floor)
     assert np.max(np.abs(actual - desired), initial=0.0) <= RTOL * scale, what
 
 
@@ -44,18 +44,23 @@ def assert_states_close(actual, desired):
     assert_close(actual.covariances, desired.covariances, 'covariances')
     assert_close(actual.probabilities, desired.probabilities, 'probabilities')
     assert actual.noise.count == desired.noise.count
-    assert_close(actual.noise[:3], desired.noise[:3], 'noise')
+    assert_close(actual.noise, desired.noise, 'noise')          # the scale and the walk
     for array in actual[:3]:
         assert not array.flags.writeable
 
 
-def assert_results_close(actual, desired):
-    """Assert two UpdateResults equal to RTOL, the gate's NIS too."""
-    for name in ('innovation', 'innovation_covariance', 'nis', 'gain'):
+def assert_results_close(actual, desired, z):
+    """Assert two UpdateResults equal to RTOL, the gate's NIS too; z the measurement."""
+    # y = z - ẑ: its rounding is ẑ's, relative to |z| (a y near 0 is a cancellation),
+    # and y²/S carries it as 2 |y| δy / S.
+    assert_close(actual.innovation, desired.innovation, 'innovation', abs(z))
+    y, S = float(desired.innovation[0]), float(desired.innovation_covariance[0, 0])
+    for name in ('innovation_covariance', 'gain'):
         assert_close(getattr(actual, name), getattr(desired, name), name)
+    assert_close(actual.nis, desired.nis, 'nis', 2.0 * abs(y) * abs(z) / S)
     assert (actual.gate_nis is None) == (desired.gate_nis is None)
     if desired.gate_nis is not None:
-        assert_close(actual.gate_nis, desired.gate_nis, 'gate_nis')
+        assert_close(actual.gate_nis, desired.gate_nis, 'gate_nis', 2.0 * abs(y) * abs(z) / S)
 
 
 @pytest.fixture(scope='module')
@@ -91,17 +96,17 @@ def test_every_step_is_the_reference_s(models, seed):
             ours, result = fast.update(state, z, given)
             theirs, their_result = reference.update(state, z, given)
             assert_states_close(ours, theirs)
-            assert_results_close(result, their_result)
+            assert_results_close(result, their_result, z)
         speed = float(state.means[1, 1] + rng.normal(0.0, 0.5))
         ours, result = fast.update_velocity(state, speed, 0.04)
         theirs, their_result = reference.update_velocity(state, speed, 0.04)
         assert_states_close(ours, theirs)
-        assert_results_close(result, their_result)
+        assert_results_close(result, their_result, speed)
         for index, value, noise in ((None, z, R), (None, z, None), (1, speed, [[0.04]])):
             ours, result = fast.predict_update(state, dt, value, noise, index)
             theirs, their_result = reference.predict_update(state, dt, value, noise, index)
             assert_states_close(ours, theirs)
-            assert_results_close(result, their_result)
+            assert_results_close(result, their_result, value)
         for ours, theirs in zip(fast.estimate(state), reference.estimate(state)):
             assert_close(ours, theirs)
         for horizon_s in (2.0, dt):
@@ -145,7 +150,7 @@ def test_learned_noise_and_gate_nis_follow_the_reference(models):
             ours, result = fast.update(state, z, [[2.0]])
             theirs, their_result = reference.update(state, z, [[2.0]])
             assert_states_close(ours, theirs)
-            assert_results_close(result, their_result)
+            assert_results_close(result, their_result, z)
             assert (result.gate_nis is not None) == (scale < 1.0)
 
 

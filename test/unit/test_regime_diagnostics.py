@@ -5,6 +5,7 @@ from kf_train.ros.diagnostics import (
     Activity, filter_status, NodeCounts, regime_names, regime_values)
 from kf_train.sim import rail_scenario
 import numpy as np
+import pytest
 
 NS = 1_000_000_000
 
@@ -32,6 +33,11 @@ def test_rail_status_shows_the_likeliest_regime_and_every_probability():
     # Four decimals: each within 5e-5 of the probability, the sum within 4 × 5e-5 of 1.
     assert np.all(np.abs(np.array(shown) - probabilities) <= 5e-5)
     assert abs(sum(shown) - 1.0) <= 2e-4
+    # What the model learned about the receiver, to 4 significant digits.
+    assert float(values['measurement_noise_scale']) == \
+        pytest.approx(estimator.noise_scale(), rel=5e-4)
+    assert float(values['measurement_error_walk_rate_hz']) == \
+        pytest.approx(estimator.error_walk_rate_hz(), rel=5e-4)
 
 
 def test_a_model_without_regimes_adds_no_values():
@@ -39,4 +45,5 @@ def test_a_model_without_regimes_adds_no_values():
     estimator = StreamEstimator(EstimatorSettings(preset='train'))
     estimator.process(NS, 1.0, 1.0)
     assert regime_names(estimator) == () and regime_values(estimator) == []
-    assert not [key for key in _status_values(estimator) if key.startswith('regime')]
+    values = _status_values(estimator)
+    assert not [key for key in values if key.startswith(('regime', 'measurement_'))]

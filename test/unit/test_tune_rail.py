@@ -189,8 +189,10 @@ def test_a_wrong_start_moves_the_right_way(runs, capsys):
     data['parameters']['command_noise'] = 1e-2
     wrong = runs / 'wrong.yaml'
     wrong.write_text(yaml.safe_dump(data))
+    # --force: what is tested is where the estimates go, not whether the held-out gain
+    # is large enough to write them (2.08 -> 2.03 m here, within its noise).
     code, text, err = _tune(capsys, runs / 'run.csv', '--config', wrong, '-o',
-                            runs / 'w.yaml', '--fix-r', '1.0')
+                            runs / 'w.yaml', '--fix-r', '1.0', '--force')
     assert code == 0, err
     tuned = yaml.safe_load(open(_params(runs / 'w.yaml')['preset']))['parameters']
     # The data cannot tell either noise from 0 here (one-sided intervals), so what is
