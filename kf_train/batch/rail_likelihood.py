@@ -51,6 +51,12 @@ fixed, as the fit of R itself needs):
   R in use (y²/S) instead, as the node judges a repeated epoch
   (``Fusion._reject_repeat``), and counted as gated when it fails.
 
+A held position (the last fused one repeated exactly, a repeat let through, with a
+variance given up to ``hold_max_variance_m2``) is fused as a speed of 0 ±
+``hold_speed_std_mps`` when that passes the gate, as the node fuses it
+(``Fusion._hold``): its ℓ term is the speed's, it teaches neither s nor the walk, and
+its y and S are NaN.
+
 Not modelled: the lock-out and re-acquisition after ``max_consecutive_outliers``
 gated fixes in a row, measured speeds, out-of-sequence fixes (the tests stay clear of
 them). ``engine`` 'numba' runs the same recursion compiled
@@ -108,7 +114,8 @@ class RailLikelihoods(NamedTuple):
     """ℓ of each setting (K,)."""
     nis: np.ndarray
     """(K, rows): the mixture innovation's NIS y²/S at every measurement after the first.
-    The per-fix fields (K, rows) are filled with ``innovations``, else (K, 0)."""
+    The per-fix fields (K, rows) are filled with ``innovations``, else (K, 0). A held
+    position (fused as a speed of 0, not gated) has NaN for its NIS, y and S."""
     innovation: np.ndarray
     """(K, rows): the mixture innovation y = z − Σ c̄_j ẑ_j."""
     variance: np.ndarray
@@ -239,19 +246,20 @@ def _mix(matrix: np.ndarray, probabilities: np.ndarray, means: np.ndarray, covs:
 
 
 def _update(means: np.ndarray, covs: np.ndarray, z: float, R: np.ndarray,
-            identity: np.ndarray):
+            identity: np.ndarray, h: int = 0):
     """
-    Return (x, P, y (K, 4), s (K, 4)): every regime corrected by the scalar position z.
+    Return (x, P, y (K, 4), s (K, 4)): every regime corrected by a scalar z of state h.
 
-    H = e₀: y = z − x₀, s = P₀₀ + R, K = P[:, 0] / s, x = x + K y and the Joseph form
-    P = (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised, as imm_stack.update does.
+    H = e_h (0: the position, 1: the speed): y = z − x_h, s = P_hh + R, K = P[:, h] / s,
+    x = x + K y and the Joseph form P = (I − K H) P (I − K H)ᵀ + K R Kᵀ, symmetrised,
+    as imm_stack.update does.
     """
-    y = z - means[:, :, 0]                                           # y = z − H x⁻
-    s = covs[:, :, 0, 0] + R[:, None]                                # s = H P⁻ Hᵀ + R
-    gain = covs[:, :, :, 0] / s[:, :, None]                          # K = P⁻ Hᵀ / s
+    y = z - means[:, :, h]                                           # y = z − H x⁻
+    s = covs[:, :, h, h] + R[:, None]                                # s = H P⁻ Hᵀ + R
+    gain = covs[:, :, :, h] / s[:, :, None]                          # K = P⁻ Hᵀ / s
     x = means + gain * y[:, :, None]                                 # x = x⁻ + K y
     I_KH = identity.copy()
-    I_KH[:, :, :, 0] -= gain                                         # I − K H
+    I_KH[:, :, :, h] -= gain                                         # I − K H
     P = np.matmul(np.matmul(I_KH, covs), I_KH.swapaxes(-1, -2)) + \
         (gain * R[:, None, None])[..., None] * gain[:, :, None, :]   # + K R Kᵀ
     return x, (P + P.swapaxes(-1, -2)) * 0.5, y, s
@@ -363,13 +371,25 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
         repeat = _repeats(float(z[k + 1]), last_z, t[k + 1] - last_t, scale, R,
                           ybar * (ybar / S), threshold, (means, covs, probabilities))
         fused = ~(gate_nis > threshold) & ~repeat
+        # A held position (a repeat let through, a variance given up to the bound): a
+        # speed of 0 when that passes the gate (Fusion._hold), teaching nothing.
+        held = _holds(model.base, scale, repeat, float(z[k + 1]), last_z, r)
+        if held.any():
+            *hold, hold_nis = _hold_update(model.base, cbar, predicted_x, predicted_P,
+                                           identity)
+            held &= ~(hold_nis > threshold)
+            x, P, posterior, ll = (
+                np.where(held.reshape((-1,) + (1,) * (position.ndim - 1)), speed, position)
+                for position, speed in zip((x, P, posterior, ll), hold))
+            ybar, S = (np.where(held, np.nan, a) for a in (ybar, S))   # no position's
+            fused |= held
         result.add(k, ll, fused, threshold, gate_S, ybar, S)
         means = np.where(fused[:, None, None], x, means)
         covs = np.where(fused[:, None, None, None], P, covs)
         probabilities = np.where(fused[:, None], posterior, probabilities)
         last_t = np.where(fused, t[k + 1], last_t)
         last_z = np.where(fused, z[k + 1], last_z)
-        for i in np.nonzero(fused)[0].tolist():          # the node's own rules, fix by fix
+        for i in np.nonzero(fused & ~held)[0].tolist():  # the node's own rules, fix by fix
             noise = noises[i]
             if adaptation is not None:
                 noise = adaptation.learn(noise, float(ybar[i]), float(S[i]), float(r[i]))
@@ -379,6 +399,27 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
     if not (np.all(np.isfinite(means)) and np.all(np.isfinite(covs))):
         raise ValueError('the rail filter produced a non-finite state; a noise is too large')
     return result
+
+
+def _holds(base: RailModelParameters, scale: np.ndarray, repeat: np.ndarray, z: float,
+           last_z: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Return which settings may take z as a held position: a repeat let through (Fusion)."""
+    if base.hold_speed_std_mps == 0.0:
+        return np.zeros(last_z.shape, dtype=bool)
+    return (scale < 1.0) & (z == last_z) & ~repeat & (r <= base.hold_max_variance_m2)
+
+
+def _hold_update(base: RailModelParameters, cbar: np.ndarray, predicted_x: np.ndarray,
+                 predicted_P: np.ndarray, identity: np.ndarray) -> tuple:
+    """Return (x, P, μ, ℓ term, NIS) of every setting after a speed of 0 (a hold)."""
+    R = np.full(cbar.shape[0], base.hold_speed_std_mps ** 2)
+    x, P, y, s = _update(predicted_x, predicted_P, 0.0, R, identity, h=1)
+    x = hold_velocity(bound_acceleration(x, P), P)                   # as RailModel._held
+    ll, posterior = _mixture_log_likelihood(cbar, y, s)
+    ybar = np.einsum('kj,kj->k', cbar, y)
+    d = y - ybar[:, None]
+    S = np.einsum('kj,kj->k', cbar, s + d * d)
+    return x, P, posterior, ll, ybar * (ybar / S)
 
 
 def _repeats(z: float, last_z: np.ndarray, dt_s: np.ndarray, scale: np.ndarray,
@@ -519,6 +560,7 @@ def rail_log_likelihoods(base: RailModelParameters, segments: Sequence[Segment],
     results = results or [_SegmentResult.empty(len(settings), 0)]
     y, S = (np.concatenate([getattr(r, name) for r in results], axis=1) for name in 'yS')
     nis = np.divide(y * y, S, out=np.zeros_like(y), where=S > 0.0)
+    nis[np.isnan(S)] = np.nan                  # a held position: no position innovation
     gated = np.concatenate([r.gated for r in results], axis=1)
     scale = np.concatenate([r.scale for r in results], axis=1)
     if not innovations:

@@ -141,6 +141,9 @@ class EstimatorStats(NamedTuple):
     """Lock-outs that kept the track (``lockout`` reacquire): the track widened by the
     rejected group's disagreement and the group fused (its last fix counted as fused, the
     others as rejected). A lock-out with ``lockout`` reset counts in ``resets``."""
+    holds: int = 0
+    """Of the fused measurements, the held positions fused as a standstill (the rail
+    preset: ``hold_speed_std_mps``, docs/rail.md)."""
 
 
 class Counters:
@@ -160,6 +163,7 @@ class Counters:
         self.velocities_fused = 0
         self.velocities_out_of_sequence = 0
         self.reacquisitions = 0
+        self.holds = 0
 
     def snapshot(self, history_length: int, control_count: int) -> EstimatorStats:
         """Return the counts as an :class:`EstimatorStats` (copies of the dicts)."""
@@ -170,7 +174,7 @@ class Counters:
              'provisional': self.provisional}, history_length, control_count,
             {'fused': self.velocities_fused,
              'out_of_sequence': self.velocities_out_of_sequence},
-            dict(self.velocity_rejections), self.reacquisitions)
+            dict(self.velocity_rejections), self.reacquisitions, self.holds)
 
 
 def override_variance(override: float, message_variance: float) -> float:

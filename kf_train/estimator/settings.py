@@ -260,6 +260,17 @@ class Configuration(NamedTuple):
     velocity_model: Optional[StepModel] = None
     """The model measuring the velocity alone (a speed sensor), sharing ``model``'s
     states; None for presets that do not fuse a separate speed (all but ``rail``)."""
+    hold: Optional['Hold'] = None
+    """How a receiver's held position is fused (:class:`Hold`); None: as a position."""
+
+
+class Hold(NamedTuple):
+    """A held position fused as a standstill (RailModelParameters.hold_speed_std_mps)."""
+
+    speed_variance_m2s2: float
+    """R of the speed of 0 it is fused as [m²/s²]."""
+    max_variance_m2: float
+    """The largest variance given with which a repeat counts as a hold [m²]."""
 
 
 def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings],
@@ -300,7 +311,15 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
         seconds_to_ns(nominal_period_s), chi2_quantile(settings.gate_probability, model.dim_z),
         tuple(float(v) for v in np.diag(initial_covariance)) if is_rail(preset)
         else (settings.first_velocity_std_mps ** 2,) * preset.dim_x,
-        _velocity_model(model))
+        _velocity_model(model), _hold(preset))
+
+
+def _hold(preset: LivePreset) -> Optional[Hold]:
+    """Return how the rail preset fuses a held position (None: as a position)."""
+    if not is_rail(preset) or preset.parameters.hold_speed_std_mps == 0.0:
+        return None
+    return Hold(preset.parameters.hold_speed_std_mps ** 2,
+                preset.parameters.hold_max_variance_m2)
 
 
 def _velocity_model(model: StepModel) -> Optional[StepModel]:

@@ -228,12 +228,13 @@ def _propagate(x, P, F, Q, out_x, out_P, GP):
 
 
 @_jit
-def _update(means, covs, c, z, R, out_x, out_P, out_posterior, logs):
+def _update(means, covs, c, z, R, out_x, out_P, out_posterior, logs, h):
     """
-    Write every regime's update by the position z; return (y, S, log Σ_j c̄_j N(y_j; s_j)).
+    Write every regime's update by z of state h; return (y, S, log Σ_j c̄_j N(y_j; s_j)).
 
-    rail_kernels.update's equations for H = e₀: y_j = z − x_j0, s_j = P_j00 + R,
-    K = P_j[0] / s_j, the Joseph form (I − K e₀ᵀ) P (I − K e₀ᵀ)ᵀ + K R Kᵀ written out
+    rail_kernels.update's equations for H = e_h (0: a position, 1: a held position's
+    speed of 0): y_j = z − x_jh, s_j = P_jhh + R,
+    K = P_j[h] / s_j, the Joseph form (I − K e_hᵀ) P (I − K e_hᵀ)ᵀ + K R Kᵀ written out
     (its zero terms skipped), the posterior in the log domain, the mixture's (y, S), and
     the acceleration bound and no mean velocity below 0 (rail_kernels'
     ``bound_acceleration`` and ``hold_velocity``).
@@ -241,22 +242,22 @@ def _update(means, covs, c, z, R, out_x, out_P, out_posterior, logs):
     count, n = means.shape
     y = 0.0
     for j in range(count):
-        y += c[j] * (z - means[j, 0])                              # y = z − Σ c̄_j ẑ_j
+        y += c[j] * (z - means[j, h])                              # y = z − Σ c̄_j ẑ_j
     S = 0.0
     top = -math.inf
     for j in range(count):
-        y_j = z - means[j, 0]
-        s = covs[j, 0, 0] + R
+        y_j = z - means[j, h]
+        s = covs[j, h, h] + R
         d = y_j - y
         S += c[j] * (s + d * d)                                     # Σ c̄_j (s_j + d_j²)
         for a in range(n):
-            out_x[j, a] = covs[j, 0, a] / s * y_j + means[j, a]     # x = x⁻ + K y
+            out_x[j, a] = covs[j, h, a] / s * y_j + means[j, a]     # x = x⁻ + K y
         for a in range(n):
-            k_a = covs[j, 0, a] / s
-            m_a0 = covs[j, a, 0] - k_a * covs[j, 0, 0]
+            k_a = covs[j, h, a] / s
+            m_ah = covs[j, a, h] - k_a * covs[j, h, h]
             for b in range(a, n):
-                k_b = covs[j, 0, b] / s
-                value = covs[j, a, b] - k_a * covs[j, 0, b] - m_a0 * k_b + (k_a * R) * k_b
+                k_b = covs[j, h, b] / s
+                value = covs[j, a, b] - k_a * covs[j, h, b] - m_ah * k_b + (k_a * R) * k_b
                 out_P[j, a, b] = value
                 out_P[j, b, a] = value
         logs[j] = math.log(c[j]) - 0.5 * (y_j * y_j / s + math.log(s) + LOG_2PI) \
@@ -274,6 +275,30 @@ def _update(means, covs, c, z, R, out_x, out_P, out_posterior, logs):
 
 
 @_jit
+def _fuse_hold(k, t, row, px, pP, pc, variance, threshold, state, outputs, logs):
+    """
+    Fuse a held position as a speed of 0 (Fusion._hold) if that passes the gate.
+
+    Return whether it did: then the state is the speed's update, ℓ has its term, y and
+    S are NaN (no position innovation) and nothing is learned.
+    """
+    means, covs, probabilities, _, last_t, _ = state
+    total, _, ys, Ss, _, _ = outputs
+    modes, n = px.shape
+    x, P, posterior = np.empty((modes, n)), np.empty((modes, n, n)), np.empty(modes)
+    y, S, ll = _update(px, pP, pc, 0.0, variance, x, P, posterior, logs, 1)
+    if not (math.isfinite(ll) and math.isfinite(S) and S > 0.0) or y * (y / S) > threshold:
+        return False
+    ys[k, row - 1], Ss[k, row - 1] = math.nan, math.nan
+    total[k] += ll
+    means[k] = x
+    covs[k] = P
+    probabilities[k] = posterior
+    last_t[k] = t
+    return True
+
+
+@_jit
 def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptation,
                   threshold, series_dt, dynamics_constants, predict_constants, big, units,
                   state, outputs, progress):
@@ -283,8 +308,8 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
     Where it stopped goes to ``progress`` (next_row, status, need_dt). A gated fix adds
     −½(γ + log S_gate + log 2π) and leaves the state as it was; a fused one adds
     log Σ_j c̄_j N(y_j; s_j) and teaches s and the error walk. ``adaptation``: the
-    NoiseAdaptation's (window, prior, scale_min, scale_max), then the ErrorWalk's
-    (rate_hz, learning_rate, bounds of log(c/c₀)).
+    NoiseAdaptation's (window, prior, scale_min, scale_max), the ErrorWalk's (rate_hz,
+    learning_rate, bounds of log(c/c₀)), the hold's (speed variance or 0, largest r).
     """
     tau_s, stand_F, phi2, phi3, below, table_a, table_l, scale, powers = dynamics_constants
     rates, stopping, stop_rate_hz, stop_speed_mps, sources, factors, noises, ell = \
@@ -320,7 +345,7 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
                  P0, GP)
         r, s_now = reported[k, row], noise[k, 0]
         R = r if s_now == 1.0 else r * s_now                        # noise_in_use: s r
-        y, S, ll = _update(px, pP, pc, z[row], R, ux, uP, posterior, logs)
+        y, S, ll = _update(px, pP, pc, z[row], R, ux, uP, posterior, logs, 0)
         if not (math.isfinite(ll) and math.isfinite(S) and S > 0.0):
             status[k] = NON_FINITE
             break
@@ -332,7 +357,11 @@ def _setting_rows(k, t, z, reported, stop, q_a, q_l, q_c, stand_noise, adaptatio
             y * (y / S) > threshold or _moved_past_last(
                 means[k], covs[k], probabilities[k], dt, R, threshold, x0, P0))
         ys[k, row - 1], Ss[k, row - 1] = y, S
-        if repeat or gate_nis > threshold:
+        if (adaptation[8] > 0.0 and s_now < 1.0 and z[row] == last_z[k] and not repeat
+                and r <= adaptation[9] and _fuse_hold(k, t[row], row, px, pP, pc, adaptation[8],
+                                                      threshold, state, outputs, logs)):
+            pass                            # a held position: a speed of 0 (Fusion._hold)
+        elif repeat or gate_nis > threshold:
             total[k] += -0.5 * (threshold + math.log(gate_S) + LOG_2PI)
             gated_count[k] += 1
             gated[k, row - 1] = True
@@ -429,7 +458,8 @@ def segment_likelihoods(parameters: RailModelParameters, t_s: np.ndarray, z: np.
     walk = parameters.error_walk()
     learning = np.array((float(adaptation.window), float(adaptation.prior),
                          adaptation.scale_min, adaptation.scale_max, walk.rate_hz,
-                         walk.learning_rate) + (walk.bounds if walk.enabled else (0.0, 0.0)))
+                         walk.learning_rate) + (walk.bounds if walk.enabled else (0.0, 0.0))
+                        + (parameters.hold_speed_std_mps ** 2, parameters.hold_max_variance_m2))
     progress = (np.ones(count, dtype=np.int64), np.zeros(count, dtype=np.int64),
                 np.zeros(count))
     chunk = min(_CHUNK, N - 1)

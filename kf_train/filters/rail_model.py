@@ -158,6 +158,13 @@ class RailModelParameters:
     """Lower bound of the learned c [1/s]."""
     error_walk_rate_max_hz: float = ErrorWalk.rate_max_hz
     """Upper bound of the learned c [1/s]."""
+    hold_speed_std_mps: float = 0.3
+    """
+    A receiver's held position (the last fused fix repeated exactly) is fused as a speed
+    of 0 with this σ, the speed below which receivers hold [m/s]; 0: fused as a position.
+    """
+    hold_max_variance_m2: float = 100.0
+    """A hold counts only with a variance given up to this (not a cold start's) [m²]."""
 
     def __post_init__(self):
         """Check every figure: finite, >= 0, and > 0 where it divides."""

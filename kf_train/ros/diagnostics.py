@@ -164,6 +164,7 @@ def _count_values(estimator, counts: NodeCounts) -> List[Tuple[str, str]]:
         values += [(f'controls_rejected.{reason}', str(count))
                    for reason, count in stats.control_rejections.items()]
     if estimator.fuses_velocity:  # the rail preset's speeds (StreamEstimator.process_velocity)
+        values.append(('holds', str(stats.holds)))    # held positions fused as a standstill
         values += [(f'velocities_{key}', str(count)) for key, count in stats.velocities.items()]
         values += [(f'velocities_rejected.{reason}', str(count))
                    for reason, count in stats.velocity_rejections.items()]

@@ -125,8 +125,9 @@ def _fit_lines(fit: RailFit, confidence: float) -> List[str]:
 
 
 def _consistency(run, k: int):
-    """Return nis_consistency of setting k's fused innovations (gated fixes left out)."""
-    fused = ~run.gated[k] if run.gated.shape[1] else np.ones(run.nis.shape[1], dtype=bool)
+    """Return nis_consistency of setting k's fused innovations (gated fixes, holds left out)."""
+    fused = ~run.gated[k] & np.isfinite(run.innovation[k]) if run.gated.shape[1] \
+        else np.ones(run.nis.shape[1], dtype=bool)
     return nis_consistency(Innovations(run.innovation[k, fused][:, None],
                                        run.variance[k, fused][:, None, None]),
                            CHECK_CONFIDENCE)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 GATE = 15.136705226623606      # χ²(1) at 0.9999: the node's default gate (checked below)
+HOLD_VARIANCE = 0.3 ** 2       # a held position's speed of 0: hold_speed_std_mps²
 
 
 def _run(seed: int, rows: int, outliers=(), true_scale: float = 0.5, jitter_s: float = 0.0,
@@ -58,9 +59,19 @@ def _node(stamps, segment, variances, reasons=None):
                 logs = np.log(predicted.probabilities) - 0.5 * (y * y / s + np.log(s) + LOG_2PI)
             top = logs.max()
             term = top + math.log(np.exp(logs - top).sum())
+            # A held position is fused as a speed of 0 (Fusion._fuse_hold): its term.
+            y = -predicted.means[:, 1]
+            s = predicted.covariances[:, 1, 1] + HOLD_VARIANCE
+            with np.errstate(divide='ignore'):
+                logs = np.log(predicted.probabilities) - 0.5 * (y * y / s + np.log(s) + LOG_2PI)
+            top = logs.max()
+            hold_term = top + math.log(np.exp(logs - top).sum())
+        holds = estimator.stats().holds
         try:
             step = estimator.process(stamp, z, r)
             result, rejected = step.update, False
+            if estimator.stats().holds > holds:
+                term = hold_term
         except Rejected as rejection:
             assert rejection.reason in ('outlier', 'repeated')
             if reasons is not None:
@@ -68,7 +79,10 @@ def _node(stamps, segment, variances, reasons=None):
             result, rejected = rejection.update, True
         if k == 0:
             continue
-        y, S = float(result.innovation[0]), float(result.innovation_covariance[0, 0])
+        if result is None:                     # a hold: no position innovation
+            y = S = math.nan
+        else:
+            y, S = float(result.innovation[0]), float(result.innovation_covariance[0, 0])
         if rejected:                           # the density at the gate's edge
             gate_S = S + (1.0 - s_now) * r if s_now < 1.0 else S
             term = -0.5 * (GATE + math.log(gate_S) + LOG_2PI)
