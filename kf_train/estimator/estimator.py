@@ -246,6 +246,31 @@ class StreamEstimator:
         fusion = self._fusion
         return None if fusion.x is None else self.model.error_walk_rate_hz(fusion.x, fusion.P)
 
+    def receiver_error_variance_m2(self) -> float:
+        """
+        Return B, the variance of the receiver's slow error that no fix reveals [m²].
+
+        The rail preset's ``absolute_error_scale`` times the variance given with the
+        newest fused position (0 for the other presets, whose fixes' errors are white,
+        and before the first). The filter's P describes the track in the fixes' own
+        frame, which a receiver's slow error moves with it: P is the band against later
+        fixes, P + B (position entry) the band about the truth (:meth:`absolute`).
+        """
+        return self._config.absolute_error_scale * self._fusion.last_variance_m2
+
+    def absolute_covariance(self, P: np.ndarray) -> np.ndarray:
+        """Return a copy of a covariance of this estimator's state with B on P_pp."""
+        P = np.array(P, dtype=float)
+        P[0, 0] += self.receiver_error_variance_m2()
+        return P
+
+    def absolute(self, step: EstimateStep) -> EstimateStep:
+        """Return ``step`` with B (:meth:`receiver_error_variance_m2`) on both P_pp."""
+        if self.receiver_error_variance_m2() == 0.0:
+            return step
+        return step._replace(P=self.absolute_covariance(step.P),
+                             predicted_P=self.absolute_covariance(step.predicted_P))
+
     def predict_to(self, stamp_ns: int) -> Tuple[np.ndarray, np.ndarray]:
         """
         Return (x, P) predicted from the newest state to ``stamp_ns``; nothing changes.

@@ -51,6 +51,8 @@ class Fusion:
         self.counters = Counters()
         self.last_z: Optional[np.ndarray] = None
         """The newest fused position (read-only): its exact repeat may be a repeated epoch."""
+        self.last_variance_m2 = 0.0
+        """The variance given with the newest fused position (R[0, 0]; 0 before one)."""
         self.newest_is_velocity = False
         """Whether the newest fused step is a speed (a position of its stamp goes before it)."""
         self.configure(config)
@@ -66,6 +68,7 @@ class Fusion:
     def reset(self, reason: str) -> None:
         """Forget the state; the next measurement initialises the filter again."""
         self.x = self.P = self.last_z = None
+        self.last_variance_m2 = 0.0
         self.newest_is_velocity = False
         self.last_stamp_ns = None
         self.history.clear()
@@ -572,6 +575,7 @@ class Fusion:
                 z: np.ndarray, R: np.ndarray) -> None:
         """Make (x, P) at stamp_ns the newest state and keep it for replay."""
         self.x, self.P, self.last_stamp_ns, self.last_z = x, P, stamp_ns, z
+        self.last_variance_m2 = float(R[0, 0])
         self.newest_is_velocity = False
         self.history.commit(Entry(stamp_ns, z, R, self.config.model, x, P, kind))
         self._after_fusion()

@@ -262,6 +262,8 @@ class Configuration(NamedTuple):
     states; None for presets that do not fuse a separate speed (all but ``rail``)."""
     hold: Optional['Hold'] = None
     """How a receiver's held position is fused (:class:`Hold`); None: as a position."""
+    absolute_error_scale: float = 0.0
+    """The receiver's unseen slow error per unit of the variance given (rail); 0 else."""
 
 
 class Hold(NamedTuple):
@@ -311,7 +313,8 @@ def configure(settings: EstimatorSettings, previous: Optional[EstimatorSettings]
         seconds_to_ns(nominal_period_s), chi2_quantile(settings.gate_probability, model.dim_z),
         tuple(float(v) for v in np.diag(initial_covariance)) if is_rail(preset)
         else (settings.first_velocity_std_mps ** 2,) * preset.dim_x,
-        _velocity_model(model), _hold(preset))
+        _velocity_model(model), _hold(preset),
+        preset.parameters.absolute_error_scale if is_rail(preset) else 0.0)
 
 
 def _hold(preset: LivePreset) -> Optional[Hold]:

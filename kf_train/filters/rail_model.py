@@ -165,6 +165,12 @@ class RailModelParameters:
     """
     hold_max_variance_m2: float = 100.0
     """A hold counts only with a variance given up to this (not a cold start's) [m²]."""
+    absolute_error_scale: float = 6.0
+    """
+    The receiver's slow error that no fix reveals, as a multiple of the variance given:
+    a band about the truth adds this times the newest fix's variance to the position's
+    (``StreamEstimator.absolute``; 0: the fixes' frame is the truth's).
+    """
 
     def __post_init__(self):
         """Check every figure: finite, >= 0, and > 0 where it divides."""

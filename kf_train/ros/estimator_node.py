@@ -466,10 +466,14 @@ class EstimatorNode(Node):
         if now_ns is None:
             return
         horizon_ns = round(self.config.values['horizon_s'] * NS_PER_S)
-        x, P = self.estimator.predict_to(now_ns)
-        self.estimate_pub.publish(self._estimate_writer.fill(now_ns, x, P))
-        x, P = self.estimator.predict_to(now_ns + horizon_ns)
-        self.prediction_pub.publish(self._prediction_writer.fill(now_ns + horizon_ns, x, P))
+        absolute = self.config.options.covariance_reference == 'absolute'
+        for stamp_ns, publisher, writer in ((now_ns, self.estimate_pub, self._estimate_writer),
+                                            (now_ns + horizon_ns, self.prediction_pub,
+                                             self._prediction_writer)):
+            x, P = self.estimator.predict_to(stamp_ns)
+            if absolute:
+                P = self.estimator.absolute_covariance(P)   # as the session's steps
+            publisher.publish(writer.fill(stamp_ns, x, P))
 
     def _matched_values(self):
         """Return the DDS endpoints matched on this node's side (MATCHED_KEYS)."""

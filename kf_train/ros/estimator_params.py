@@ -30,6 +30,8 @@ VELOCITY_TYPES = ('twist_with_covariance', 'twist', 'none')
 TwistStamped (variance measurement_velocity_variance) or no subscription."""
 STALE_OUTPUTS = ('stop', 'predict')
 """What a stale state does to estimate and prediction (parameter stale_output)."""
+COVARIANCE_REFERENCES = ('receiver', 'absolute')
+"""What the published covariances describe (parameter covariance_reference)."""
 FRAME_PARAMETERS = ('frame_id', 'child_frame_id')
 NOISE_AND_GATE = frozenset(('process_noise_density', 'measurement_variance',
                             'measurement_velocity_variance', 'gate_probability'))
@@ -254,6 +256,13 @@ PARAMETERS_NODE = (
               'prediction (a stale control withholds those of new measurements); predict '
               'publishes, while the measurement is stale, the estimate predicted to now (its '
               'covariance widening) at every stale check.', choices=STALE_OUTPUTS, group=_G_NODE),
+    ParamSpec('covariance_reference', 'string', 'receiver',
+              'What the covariances of estimate and prediction describe. receiver '
+              "(default): the track in the fixes' own frame, which a receiver's slow error "
+              'moves with it: the band a later fix falls in. absolute: about the truth: '
+              "the rail preset adds absolute_error_scale times the newest fix's variance "
+              'to the position variance (docs/rail.md); the other presets publish the same '
+              'either way.', choices=COVARIANCE_REFERENCES, group=_G_NODE),
     ParamSpec('reset_on_clock_jump', 'bool', True,
               'Reset the filter when the node clock jumps backwards (use_sim_time, a bag '
               'loop, a simulation reset).', group=_G_NODE),
@@ -295,6 +304,7 @@ class NodeOptions(NamedTuple):
     stale_warn_periods: float
     stale_error_periods: float
     stale_output: str
+    covariance_reference: str
     qos_reliability: str
     qos_depth: int
     managed: bool

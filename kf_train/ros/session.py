@@ -161,10 +161,10 @@ class EstimatorSession:
         if self.noise.active:
             self._add_to_noise_window(stamp_ns, measurement)
         if step.update is None:
-            return Outputs(step)
+            return Outputs(self._referenced(step))
         self.innovations += 1
         self.nis.append(step.update.nis)
-        return Outputs(step, step.measurement_stamp_ns, step.update)
+        return Outputs(self._referenced(step), step.measurement_stamp_ns, step.update)
 
     def on_fix(self, fix, now_ns: int) -> List[Outputs]:
         """Project a NavSatFix (track_input.Fix) onto the track; fuse what it releases."""
@@ -207,7 +207,7 @@ class EstimatorSession:
         if not self._publishable(step):
             return NOTHING
         self.velocities_fused += 1
-        return Outputs(step)
+        return Outputs(self._referenced(step))
 
     def on_control(self, control, now_ns: int) -> Outputs:
         """Take one control (``stamp_ns``, ``value``); the corrected estimate if it changed."""
@@ -222,7 +222,7 @@ class EstimatorSession:
         self.noise.add_control((control.value,))
         if step is not None and self._publishable(step):
             self.corrections += 1
-            return Outputs(step)
+            return Outputs(self._referenced(step))
         return NOTHING
 
     def reset(self, reason: str = 'manual', detail: str = 'requested through ~/reset') -> None:
@@ -313,6 +313,12 @@ class EstimatorSession:
             self.reset('non_finite', 'a non-finite state was not published')
             return False
         return True
+
+    def _referenced(self, step):
+        """Return the step with the covariances ``covariance_reference`` asks for."""
+        if self.config.options.covariance_reference == 'absolute':
+            return self.estimator.absolute(step)      # about the truth: + B on P_pp
+        return step
 
     def _warn_rejection(self, reason: str, text: str, what: str = 'measurement') -> None:
         """Log a rejection, at most once per WARN_THROTTLE_S for each reason."""

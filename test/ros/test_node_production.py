@@ -262,6 +262,25 @@ def test_stale_output_predict_publishes_a_widening_estimate(ros_context, executo
     assert all(b > a for a, b in zip(variances, variances[1:])), variances
 
 
+def test_the_absolute_band_is_published_fused_and_stale(ros_context, executor):
+    """covariance_reference absolute (rail): P + 6 × the fix's variance, stale ones too."""
+    _start(executor, EstimatorNode(context=ros_context, parameter_overrides=_parameters(
+        {'expected_period_s': 0.05, 'stale_warn_periods': 1.0, 'stale_error_periods': 2.0,
+         'stale_output': 'predict', 'covariance_reference': 'absolute'})))
+    probe = Probe(ros_context, executor)
+    assert spin_until(executor, lambda: probe.pub.get_subscription_count() == 1)
+    for _ in range(3):
+        count = len(probe.estimates)
+        probe.send()                          # variance 1 m²: B = 6 m²
+        assert spin_until(executor, lambda: len(probe.estimates) == count + 1)
+    fused = len(probe.estimates)
+    assert spin_until(executor, lambda: len(probe.estimates) >= fused + 2)
+    variances = [msg.pose.covariance[0] for msg in probe.estimates]
+    # The filter's own P_pp is at most the fix's 1 m² after a fix, and grows when stale.
+    assert all(6.0 < v <= 7.0 for v in variances[:fused]), variances
+    assert all(v > 6.0 for v in variances[fused:]), variances
+
+
 def test_stale_control_withholds_the_estimate_until_it_returns(ros_context, executor):
     """stale_output stop: with the car's control silent, new estimates are withheld."""
     node = _start(executor, EstimatorNode(context=ros_context, parameter_overrides=_parameters(
