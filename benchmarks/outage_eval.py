@@ -24,26 +24,11 @@ import argparse
 import dataclasses
 
 from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
-from kf_train.sim.gnss_receiver import GnssReceiver, GnssReceiverParameters
 from kf_train.sim.rail import family_parameters, rail_run
 import numpy as np
+from receiver_eval import measured         # the same runs, receiver and fixes
 
 NS = 1_000_000_000
-RATE_HZ = 5.0
-
-
-def _fixes(run, seed: int):
-    """Return (t, z, variance, truth, speed, its variance, receiver error) per epoch."""
-    receiver = GnssReceiver(GnssReceiverParameters(), np.random.default_rng(1000 + seed))
-    rows = []
-    for t in np.arange(0.0, run.parameters.duration_s, 1.0 / RATE_HZ):
-        state = run.state_at(np.array([t]))
-        p, v = float(state.position_m[0]), float(state.velocity_mps[0])
-        fix = receiver.fix(float(t), p, v)
-        if fix.position_m is not None:
-            rows.append((t, fix.position_m, fix.h_acc_m ** 2, p, fix.speed_mps,
-                         fix.speed_acc_mps ** 2, fix.position_m - p))
-    return tuple(np.array(column) for column in zip(*rows))
 
 
 def outage_errors(t, z, variance, truth_at, speed, speed_variance, error, start_s: float,
@@ -94,7 +79,8 @@ def main() -> None:
             params = dataclasses.replace(family_parameters(family, seed),
                                          duration_s=args.duration)
             run = rail_run(params, seed)
-            t, z, variance, truth, speed, speed_variance, error = _fixes(run, seed)
+            t, z, variance, truth, _, speed, speed_variance = measured(run, seed)
+            error = z - truth                  # the receiver's error at each fix
 
             def truth_at(times, run=run):
                 return run.state_at(times).position_m

@@ -93,23 +93,15 @@ def test_a_hold_is_a_speed_of_zero_with_the_hold_variance(held):
     assert estimator.stats().fused == twin.stats().fused + 1
 
 
-def test_a_zero_hold_speed_fuses_repeats_as_positions(tmp_path, held):
-    """hold_speed_std_mps 0: no holds, the repeats at stops are fused as positions."""
+@pytest.mark.parametrize('override', [{'hold_speed_std_mps': 0.0},
+                                      {'hold_max_variance_m2': 3.9}])
+def test_without_a_hold_the_repeats_at_stops_are_positions(tmp_path, held, override):
+    """No hold with a hold speed of 0, or a variance given above hold_max_variance_m2."""
     stamps, z, variances, _ = held
-    estimator = StreamEstimator(EstimatorSettings(
-        preset=_preset(tmp_path, hold_speed_std_mps=0.0)))
+    estimator = StreamEstimator(EstimatorSettings(preset=_preset(tmp_path, **override)))
     _replay(estimator, stamps, z, variances)
     assert estimator.stats().holds == 0
     assert estimator.stats().fused >= 0.99 * z.size
-
-
-def test_a_variance_beyond_the_bound_is_not_a_hold(tmp_path, held):
-    """A cold start's hold (variance given above hold_max_variance_m2) is a position."""
-    stamps, z, variances, _ = held
-    estimator = StreamEstimator(EstimatorSettings(
-        preset=_preset(tmp_path, hold_max_variance_m2=3.9)))
-    _replay(estimator, stamps, z, variances)
-    assert estimator.stats().holds == 0
 
 
 def test_a_repeat_while_moving_is_still_a_repeated_epoch():
