@@ -166,13 +166,18 @@ def _all(bag_path: Path) -> list:
 
 
 def scores(t: np.ndarray, z: np.ndarray, mean: np.ndarray, variance: np.ndarray,
-           r_m2: float, good: np.ndarray) -> dict:
-    """Return RMSE and coverage over every later fix and over the good later fixes."""
+           r_m2, good: np.ndarray) -> dict:
+    """
+    Return RMSE and coverage over every later fix and over the good later fixes.
+
+    ``r_m2``: the later fix's R, one for all or one per fix (real_logs.py's R in use).
+    """
     # Before the direction is decided the node holds the fixes: no prediction to score.
     target, valid = later_fix(t, z)
     scored = valid & np.isfinite(mean) & np.isfinite(target) & (t >= t[0] + RAIL_WARMUP_S)
     error = mean[scored] - target[scored]
-    band = 2.0 * np.sqrt(np.maximum(variance[scored], 0.0) + r_m2)
+    band = 2.0 * np.sqrt(np.maximum(variance[scored], 0.0)
+                         + np.broadcast_to(r_m2, t.shape)[scored])
     rmse, coverage = float(np.sqrt(np.mean(error ** 2))), float(np.mean(np.abs(error) <= band))
     count = int(scored.sum())
     later_good, _ = later_fix(t, good.astype(float))
