@@ -336,6 +336,13 @@ def _mixture_log_likelihood(cbar: np.ndarray, y: np.ndarray, s: np.ndarray):
     return top[:, 0] + np.log(mass), w / mass[:, None]                # μ_j ∝ c̄_j Λ_j
 
 
+def _mixture_moments(cbar: np.ndarray, y: np.ndarray, s: np.ndarray):
+    """Return the mixture's innovation (ȳ (K,), S (K,)), as IMM.update moment-matches it."""
+    ybar = np.einsum('kj,kj->k', cbar, y)                            # y = z − Σ c̄_j ẑ_j
+    d = y - ybar[:, None]
+    return ybar, np.einsum('kj,kj->k', cbar, s + d * d)              # Σ c̄_j (s_j + d_j²)
+
+
 def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
                   adaptation: Optional[NoiseAdaptation], threshold: float):
     """Return _SegmentResult of one segment (see rail_log_likelihoods), the numpy reference."""
@@ -359,9 +366,7 @@ def _segment_pass(segment: Segment, model: _Model, reported: np.ndarray,
         x, P, y, s = _update(predicted_x, predicted_P, float(z[k + 1]), R, identity)
         x = hold_velocity(bound_acceleration(x, P), P)                # |a| bound, no reversal
         ll, posterior = _mixture_log_likelihood(cbar, y, s)
-        ybar = np.einsum('kj,kj->k', cbar, y)                        # y = z − Σ c̄_j ẑ_j
-        d = y - ybar[:, None]
-        S = np.einsum('kj,kj->k', cbar, s + d * d)                   # Σ c̄_j (s_j + d_j²)
+        ybar, S = _mixture_moments(cbar, y, s)
         # The gate's variance: with s < 1 the R given (IMM.finish_update's gate_nis).
         gate_S = np.where(scale < 1.0, S + (1.0 - scale) * r, S)
         gate_nis = np.where(scale < 1.0, ybar * ybar / gate_S, ybar * (ybar / S))
@@ -416,9 +421,7 @@ def _hold_update(base: RailModelParameters, cbar: np.ndarray, predicted_x: np.nd
     x, P, y, s = _update(predicted_x, predicted_P, 0.0, R, identity, h=1)
     x = hold_velocity(bound_acceleration(x, P), P)                   # as RailModel._held
     ll, posterior = _mixture_log_likelihood(cbar, y, s)
-    ybar = np.einsum('kj,kj->k', cbar, y)
-    d = y - ybar[:, None]
-    S = np.einsum('kj,kj->k', cbar, s + d * d)
+    ybar, S = _mixture_moments(cbar, y, s)
     return x, P, posterior, ll, ybar * (ybar / S)
 
 
