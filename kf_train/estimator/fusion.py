@@ -19,8 +19,9 @@ from kf_train.estimator.controls import Controls, propagate, prune_controls
 from kf_train.estimator.history import (
     Entry, History, initial_state, replay, replay_control, rewind_point)
 from kf_train.estimator.reacquire import consistent_group, fit_line, jump_covariance
+from kf_train.estimator.receiver_rules import held_standstill, repeated_epoch
 from kf_train.estimator.settings import Configuration
-from kf_train.filters import moved_past, NS_PER_S, UpdateResult
+from kf_train.filters import NS_PER_S, UpdateResult
 import numpy as np
 
 
@@ -97,7 +98,7 @@ class Fusion:
         if stamp_ns == newest and self.newest_is_velocity:
             # The speed of this stamp came first: the position goes before it.
             if self.history:
-                return self._fuse_out_of_sequence(stamp_ns, z, R)
+                return self._fuse_before_speed(stamp_ns, z, R)
             return self._fuse_in_order(stamp_ns, z, R)  # no history: after it, dt = 0
         if stamp_ns == newest:
             self._reject('duplicate_stamp', f'measurement stamp {stamp_ns} ns is not newer than '
@@ -255,8 +256,10 @@ class Fusion:
         The rejected fixes (the last one is this measurement) agree on a line; the track
         at the last fused stamp is widened by the jump between its prediction and that
         line (:func:`~kf_train.estimator.reacquire.jump_covariance`), then each fix is
-        fused in order, never gated. Nothing rewinds past the widening (it is kept as a
-        'reinit' entry). Should that fail numerically, the track is reset instead.
+        fused in order, never gated. A speed input fused while the group was rejected
+        has moved the track past the group's first fixes: those shape the line, and the
+        fixes from the track's stamp on are fused. Nothing rewinds past the widening (it
+        is kept as a 'reinit' entry). Should that fail numerically, the track is reset.
         """
         group = sorted(self.rejected, key=lambda fix: fix[0])
         anchor_ns, model = self.last_stamp_ns, self.config.model
@@ -271,7 +274,7 @@ class Fusion:
                 raise FloatingPointError('no finite jump between the track and the group')
             widened = x, P = model.widen(self.x, self.P, jump)
             fused = []
-            for stamp_ns, z, R in group:
+            for stamp_ns, z, R in (fix for fix in group if fix[0] >= anchor_ns):
                 x, P, result = model.predict_update(x, P, (stamp_ns - anchor_ns) / NS_PER_S,
                                                     z, R)
                 fused.append((stamp_ns, z, R, x, P, result))
@@ -396,33 +399,14 @@ class Fusion:
         return self._step(stamp_ns, x, P, result, predicted, stamp_ns)
 
     def _hold(self, x0: np.ndarray, P0: np.ndarray, dt_s: float, R: np.ndarray) -> None:
-        """
-        Raise _Held with the state after a receiver's held position, fused as a standstill.
-
-        Called for an in-order exact repeat of the last fused position that
-        :meth:`_reject_repeat` let through (the track can be standing there). Receivers
-        hold their output while they see themselves standing (Doppler below ~0.3 m/s;
-        76-83 % of the standing fixes on real u-blox logs repeat the last one exactly).
-        A held fix carries no new position: fused as one, it pins the track to a value
-        the receiver's slow error has since left, and the jump when the hold ends reads
-        as motion. What it says is that the receiver sees no speed, so it is fused as
-        a speed of 0 ± ``hold_speed_std_mps``, when that passes the gate and the variance
-        given is at most ``hold_max_variance_m2`` (a cold start's hold is not one).
-        Otherwise (or on a numerical failure) it returns and the fix is a position.
-        """
-        hold = self.config.hold
-        if hold is None or float(R[0, 0]) > hold.max_variance_m2:
-            return
-        model = self.config.velocity_model
-        z, R = np.zeros(1), np.array([[hold.speed_variance_m2s2]])
-        try:
-            x, P, result = model.predict_update(x0, P0, dt_s, z, R)
-            if not result.nis <= self.config.gate_threshold:
+        """Raise _Held if the repeat is a held position (receiver_rules.held_standstill)."""
+        held = held_standstill(self.config, x0, P0, dt_s, R)
+        if held is not None:
+            try:
+                predicted = self._predict_ahead(held[0], held[1])
+            except NUMERICAL_ERRORS:
                 return
-            predicted = self._predict_ahead(x, P)
-        except NUMERICAL_ERRORS:
-            return
-        raise _Held(x, P, predicted, z, R)
+            raise _Held(held[0], held[1], predicted, held[2], held[3])
 
     def _commit_hold(self, stamp_ns: int, x, P, predicted, z, R) -> EstimateStep:
         """
@@ -476,54 +460,56 @@ class Fusion:
 
     def _reject_repeat(self, x0: np.ndarray, P0: np.ndarray, dt_s: float, stamp_ns: int,
                        z: np.ndarray, R: np.ndarray, result: UpdateResult) -> None:
-        """
-        Reject the newest fused position repeated exactly although the track has moved.
-
-        Called for an in-order fix equal to the last fused one in its first entry, where
-        R is learned below the R given (``gate_nis`` set): seeds and presets with R as
-        given are untouched. (x0, P0) is the state at the last fused stamp, dt_s ago.
-
-        A receiver repeats an epoch (its last output again, after a dropped solution or
-        an outage): at 31 m/s a repeat 0.2 s later is a 6-m step back. The gate uses
-        the R given when R is learned lower, and a learned R of a few centimetres then
-        weighs that step as motion. So an exact repeat is rejected when either
-
-        * its NIS on the R in use, yᵀ S⁻¹ y with S = H P Hᵀ + s R (the update's own; y is
-          how far the track moved from the last fix), exceeds the gate; or
-        * the train was moving too fast to be there (rail_model.moved_past: its speed
-          then, at the gate's lower bound, braking at once at the model's limit). After
-          a 30-s outage the regimes spread over hundreds of metres and a repeat of the
-          last fix passes the gate on the prediction: on a 98-minute receiver run one
-          such repeat was fused as a train braked to a halt 292 m back, and the next
-          fixes were rejected for 2 s.
-
-        A standing train's held position (an exact repeat too) has y of the last fix's
-        residual and a speed near 0, and is fused (as a standstill: :meth:`_hold`).
-        Repeats count toward the lock-out as outliers do: a receiver that keeps
-        repeating one position says the train stands there, and
-        ``max_consecutive_outliers`` of them re-acquire the track on it (on a real log a
-        receiver held one position for over 15 s while the track coasted on at
-        10.8 m/s).
-        """
+        """Reject an exact repeat of the newest position as a repeated epoch (receiver_rules)."""
         if not np.array_equal(z, self.last_z):
             return
-        threshold = self.config.gate_threshold
-        model = self.config.model
-        if result.nis > threshold:                           # yᵀ S⁻¹ y, S with s R
-            why = f'NIS {result.nis:.6g} on the R in use, gate {threshold:.6g}'
-        elif self.config.velocity_model is not None:
-            v = model.state_names.index('velocity')
-            reach_m2 = float(P0[0, 0]) + model.noise_scale(x0, P0) * float(R[0, 0])
-            if not moved_past(float(x0[v]), float(P0[v, v]), dt_s, reach_m2, threshold):
-                return
-            why = (f'{dt_s:.6g} s after a fix at {float(x0[v]):.6g} m/s: it cannot '
-                   'have stopped there')
+        why = repeated_epoch(self.config, x0, P0, dt_s, R, result)
+        if why is not None:
+            self._reject_update('repeated', (
+                f'the last fused position again, {np.array2string(z, precision=6)}, though '
+                f'the track moved {np.array2string(-result.innovation, precision=6)} from '
+                f'it ({why}): a repeated epoch'), result, (stamp_ns, z, R), in_order=True)
+
+    def _fuse_before_speed(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+        """
+        Fuse a position whose epoch's speed came first: in order, then that speed again.
+
+        A receiver's driver may publish an epoch's velocity before its fix. The fix is
+        still the newest position, so the rules of an in-order fix apply to it (the
+        repeated epoch, the held position, the lock-out's re-acquisition, the newest
+        position kept), from the state before the speed; the speed is then fused after
+        it, the order :func:`~kf_train.estimator.history.rewind_point` gives an epoch.
+        """
+        entries = self.history.entries()
+        speed = entries[-1]
+        if len(entries) < 2 or not speed.velocity or speed.stamp_ns != stamp_ns:
+            return self._fuse_out_of_sequence(stamp_ns, z, R)
+        anchor = entries[-2]
+        try:
+            x, P, result, _, exact = self._gated_update(
+                anchor.x, anchor.P, anchor.stamp_ns, stamp_ns, z, R, in_order=True)
+            entry = Entry(stamp_ns, z, R, self.config.model, x, P, 'update')
+        except _Reacquire:
+            return self._reacquire()
+        except _Held as held:
+            x, P, _, held_z, held_R = held.args
+            entry, result, exact = Entry(stamp_ns, held_z, held_R, self.config.velocity_model,
+                                         x, P, 'update', True), None, True
+        try:
+            rebuilt, x, P, u = replay(entries[:-1] + [entry], [speed], None, self.controls)
+            predicted = self._predict_ahead(x, P, u)
+        except NUMERICAL_ERRORS as error:
+            self._reject_update('numerical', f'replay failed: {error}')
+        self.history.replace(rebuilt)
+        self.x, self.P = x, P
+        self._after_fusion()
+        if result is None:
+            self.counters.holds += 1    # last_z stays the held position, as in order
         else:
-            return
-        self._reject_update('repeated', (
-            f'the last fused position again, {np.array2string(z, precision=6)}, though '
-            f'the track moved {np.array2string(-result.innovation, precision=6)} from it '
-            f'({why}): a repeated epoch'), result, (stamp_ns, z, R), in_order=True)
+            self.last_z, self.last_variance_m2 = z, float(R[0, 0])
+        self.counters.out_of_sequence += 1
+        self.counters.provisional += not exact
+        return self._step(stamp_ns, x, P, result, predicted, stamp_ns, replayed=1)
 
     def _fuse_out_of_sequence(self, stamp_ns: int, z: np.ndarray,
                               R: np.ndarray) -> EstimateStep:

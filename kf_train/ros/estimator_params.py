@@ -201,8 +201,10 @@ PARAMETERS_LIVE = (
         'stays one track through gaps, cold starts and receiver artefacts; counted as '
         'reacquisitions) '
         'or reset (the filter forgets the track and the next measurement initialises it '
-        'with the rejected fixes; counted in resets). A lock-out from numerical failures, '
-        'out-of-sequence fixes or with controls always resets. ' + _LIVE,
+        'with the rejected fixes; counted in resets). A speed input fused meanwhile is '
+        'kept (the fixes from the track’s stamp on are fused). A lock-out from numerical '
+        'failures, out-of-sequence fixes (a fix after its own epoch’s speed is in order) '
+        'or with controls always resets. ' + _LIVE,
         choices=LOCKOUT_ACTIONS, group=_G_LIVE),
     _integer('restart_after_stale', _CORE.restart_after_stale,
              'After this many stale measurements in a row the stream counts as restarted: '

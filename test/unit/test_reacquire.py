@@ -104,6 +104,43 @@ def test_a_consistent_group_reacquires_the_track_and_keeps_what_it_learned():
     assert step.update is not None and step.update.nis < 15.1
 
 
+@pytest.mark.parametrize('speed_first', [False, True])
+def test_a_speed_input_keeps_the_reacquisition(speed_first):
+    """
+    With a Doppler fused at every epoch (either message first), a group still re-acquires.
+
+    The speeds fused while the group is rejected move the track past the group's first
+    fixes; those shape the line, and the track is not reset. The node keeps a history
+    (history_s 1), where a fix after its epoch's speed is fused before it.
+    """
+    estimator = StreamEstimator(dataclasses.replace(RAIL, history_s=1.0))
+
+    def epoch(k: int, position_m: float):
+        stamp = _stamps(1, k)[0]
+        if speed_first and k:
+            estimator.process_velocity(stamp, 10.0, 0.01)
+        step = estimator.process(stamp, position_m, 1.0)
+        if not speed_first:
+            estimator.process_velocity(stamp, 10.0, 0.01)
+        return step
+    for k in range(200):
+        epoch(k, 1.0 * k + 0.1 * ((-1) ** k))
+    moved = [500.0 + 1.0 * k for k in range(200, 206)]
+    for k in range(4):
+        with pytest.raises(Rejected) as raised:
+            epoch(200 + k, moved[k])
+        assert raised.value.reason == 'outlier' and raised.value.reset is None
+        if not speed_first:             # the rejected fix's speed, fused on the track
+            estimator.process_velocity(_stamps(1, 200 + k)[0], 10.0, 0.01)
+    step = epoch(204, moved[4])
+    stats = estimator.stats()
+    assert stats.reacquisitions == 1 and sum(stats.resets.values()) == 0
+    assert step.x[0] == pytest.approx(moved[4], abs=1.0)
+    assert step.x[1] == pytest.approx(10.0, abs=0.5)
+    step = epoch(205, moved[5])                                     # gated, accepted
+    assert step.update is not None and step.update.nis < 15.1
+
+
 def test_reacquisition_is_the_widened_track_fused_with_the_group():
     """The re-acquired state is StepModel.widen by the jump, then the group in order."""
     from kf_train.estimator.reacquire import fit_line, jump_covariance

@@ -4,7 +4,7 @@ import dataclasses
 import math
 
 from kf_train.estimator import EstimatorSettings, Rejected, StreamEstimator
-from kf_train.estimator import fusion
+from kf_train.estimator import receiver_rules
 from kf_train.filters import moved_past, numba_available
 import numpy as np
 import pytest
@@ -120,7 +120,7 @@ def test_a_repeat_after_an_outage_is_rejected_though_it_passes_the_gate(jit):
 
 
 def test_without_the_speed_rule_that_repeat_stops_the_train(monkeypatch):
-    monkeypatch.setattr(fusion, 'moved_past', lambda *args: False)
+    monkeypatch.setattr(receiver_rules, 'moved_past', lambda *args: False)
     estimator = StreamEstimator(EstimatorSettings())
     fixes = _cruise(estimator, 300)
     step = estimator.process(_stamp(299) + OUTAGE_NS, fixes[-1], GIVEN_M2)
