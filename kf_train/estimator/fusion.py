@@ -17,7 +17,7 @@ from kf_train.estimator.contract import (
     Counters, EstimateStep, NUMERICAL_ERRORS, Rejected)
 from kf_train.estimator.controls import Controls, propagate, prune_controls
 from kf_train.estimator.history import (
-    Entry, History, initial_state, replay, replay_control, rewind_point)
+    Entry, History, initial_state, is_speed, replay, replay_control, rewind_point)
 from kf_train.estimator.reacquire import consistent_group, fit_line, jump_covariance
 from kf_train.estimator.receiver_rules import held_standstill, repeated_epoch
 from kf_train.estimator.settings import Configuration
@@ -98,7 +98,7 @@ class Fusion:
         if stamp_ns == newest and self.newest_is_velocity:
             # The speed of this stamp came first: the position goes before it.
             if self.history:
-                return self._fuse_before_speed(stamp_ns, z, R)
+                return self._fuse_out_of_sequence(stamp_ns, z, R)
             return self._fuse_in_order(stamp_ns, z, R)  # no history: after it, dt = 0
         if stamp_ns == newest:
             self._reject('duplicate_stamp', f'measurement stamp {stamp_ns} ns is not newer than '
@@ -183,7 +183,7 @@ class Fusion:
             self._reject_velocity('numerical', f'replay failed: {error}')
         self.history.replace(rebuilt)
         self.x, self.P = x, P
-        self.newest_is_velocity = rebuilt[-1].velocity
+        self.newest_is_velocity = is_speed(rebuilt[-1])
         self.counters.velocities_fused += 1
         self.counters.velocities_out_of_sequence += 1
         return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
@@ -274,6 +274,8 @@ class Fusion:
                 raise FloatingPointError('no finite jump between the track and the group')
             widened = x, P = model.widen(self.x, self.P, jump)
             fused = []
+            if group[-1][0] < anchor_ns:
+                raise ValueError('the group is older than the track (speeds fused since)')
             for stamp_ns, z, R in (fix for fix in group if fix[0] >= anchor_ns):
                 x, P, result = model.predict_update(x, P, (stamp_ns - anchor_ns) / NS_PER_S,
                                                     z, R)
@@ -418,7 +420,7 @@ class Fusion:
         self.x, self.P, self.last_stamp_ns = x, P, stamp_ns
         self.newest_is_velocity = False   # it stands for this stamp's position
         self.history.commit(Entry(stamp_ns, z, R, self.config.velocity_model, x, P,
-                                  'update', True))
+                                  'hold', True))
         self._after_fusion()
         self.counters.holds += 1        # last_z stays the held position, for the next
         return self._step(stamp_ns, x, P, None, predicted, stamp_ns)
@@ -470,21 +472,19 @@ class Fusion:
                 f'the track moved {np.array2string(-result.innovation, precision=6)} from '
                 f'it ({why}): a repeated epoch'), result, (stamp_ns, z, R), in_order=True)
 
-    def _fuse_before_speed(self, stamp_ns: int, z: np.ndarray, R: np.ndarray) -> EstimateStep:
+    def _fuse_newest_position(self, stamp_ns: int, z: np.ndarray, R: np.ndarray,
+                              entries: list, i: int) -> EstimateStep:
         """
-        Fuse a position whose epoch's speed came first: in order, then that speed again.
+        Fuse a position late only behind speeds: in order from entries[i - 1], then those.
 
-        A receiver's driver may publish an epoch's velocity before its fix. The fix is
-        still the newest position, so the rules of an in-order fix apply to it (the
-        repeated epoch, the held position, the lock-out's re-acquisition, the newest
-        position kept), from the state before the speed; the speed is then fused after
-        it, the order :func:`~kf_train.estimator.history.rewind_point` gives an epoch.
+        A receiver's driver may publish an epoch's velocity before its fix, or a fix may
+        come late behind the next epoch's speed. It is still the newest position, so the
+        rules of an in-order fix apply to it (the repeated epoch, the held position, the
+        lock-out's re-acquisition, the newest position kept); the speeds after it are
+        then fused again, in the order :func:`~kf_train.estimator.history.rewind_point`
+        gives (at one stamp the position first).
         """
-        entries = self.history.entries()
-        speed = entries[-1]
-        if len(entries) < 2 or not speed.velocity or speed.stamp_ns != stamp_ns:
-            return self._fuse_out_of_sequence(stamp_ns, z, R)
-        anchor = entries[-2]
+        anchor = entries[i - 1]
         try:
             x, P, result, _, exact = self._gated_update(
                 anchor.x, anchor.P, anchor.stamp_ns, stamp_ns, z, R, in_order=True)
@@ -494,9 +494,9 @@ class Fusion:
         except _Held as held:
             x, P, _, held_z, held_R = held.args
             entry, result, exact = Entry(stamp_ns, held_z, held_R, self.config.velocity_model,
-                                         x, P, 'update', True), None, True
+                                         x, P, 'hold', True), None, True
         try:
-            rebuilt, x, P, u = replay(entries[:-1] + [entry], [speed], None, self.controls)
+            rebuilt, x, P, u = replay(entries[:i] + [entry], entries[i:], None, self.controls)
             predicted = self._predict_ahead(x, P, u)
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'replay failed: {error}')
@@ -509,7 +509,8 @@ class Fusion:
             self.last_z, self.last_variance_m2 = z, float(R[0, 0])
         self.counters.out_of_sequence += 1
         self.counters.provisional += not exact
-        return self._step(stamp_ns, x, P, result, predicted, stamp_ns, replayed=1)
+        return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
+                          replayed=len(entries) - i)
 
     def _fuse_out_of_sequence(self, stamp_ns: int, z: np.ndarray,
                               R: np.ndarray) -> EstimateStep:
@@ -520,6 +521,8 @@ class Fusion:
         except Rejected as rejection:
             self.counters.rejections[rejection.reason] += 1
             raise
+        if i > 0 and all(is_speed(entry) for entry in entries[i:]):
+            return self._fuse_newest_position(stamp_ns, z, R, entries, i)
         if i == 0:
             # Older than the initialising measurement: in order, this one would have
             # initialised the filter and the old first one been an update.

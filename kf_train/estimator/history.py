@@ -32,8 +32,9 @@ class Entry(NamedTuple):
     x: np.ndarray
     P: np.ndarray
     kind: str
-    """'init' (initialised the filter), 'update', or 'set' / 'reinit' (set_state, the
-    re-initialisation after a lock-out: no rewinding past them)."""
+    """'init' (initialised the filter), 'update', 'hold' (a held position fused as a
+    speed of 0), or 'set' / 'reinit' (set_state, the re-initialisation after a
+    lock-out: no rewinding past them)."""
     velocity: bool = False
     """A speed measurement (fused after a position of the same stamp), not a position."""
 
@@ -93,7 +94,8 @@ def replay(rebuilt: List[Entry], rest: Sequence[Entry], u, controls: Optional[Co
         x, P, u, _ = propagate(controls, entry.model, x, P, rebuilt[-1].stamp_ns,
                                entry.stamp_ns)
         x, P, _ = entry.model.update(x, P, entry.z, entry.R)
-        rebuilt.append(entry._replace(x=x, P=P, kind='update'))
+        # Re-fused: an update now, even the first fix ('init'); a hold stays one.
+        rebuilt.append(entry._replace(x=x, P=P, kind='hold' if entry.kind == 'hold' else 'update'))
     if not rest and u is None and controls is not None:
         u = controls.for_interval_ending(rebuilt[-1].stamp_ns)[0]
     return rebuilt, x, P, u
@@ -132,21 +134,28 @@ def initial_state(config, controls: Optional[Controls], locked_out: bool, stamp_
     return x, P, None, u, exact
 
 
+def is_speed(entry: Entry) -> bool:
+    """Return whether an entry is a measured speed (not a position, nor a held one)."""
+    return entry.velocity and entry.kind != 'hold'
+
+
 def rewind_point(entries: List[Entry], stamp_ns: int, last_stamp_ns: int,
                  velocity: bool = False) -> int:
     """
     Return the index an out-of-sequence stamp goes to in ``entries``, or raise Rejected.
 
     At one stamp a position goes before a speed (``velocity``): the order in which a
-    receiver's epoch is fused whichever message came first.
+    receiver's epoch is fused whichever message came first. A hold is its stamp's
+    position (fused as a speed of 0).
     """
     stamps = [entry.stamp_ns for entry in entries]
     i = bisect.bisect_left(stamps, stamp_ns)
     while i < len(stamps) and stamps[i] == stamp_ns:
-        if entries[i].velocity == velocity:
+        speed = is_speed(entries[i])
+        if speed == velocity:
             raise Rejected('duplicate_stamp',
                            f'measurement stamp {stamp_ns} ns was fused already')
-        if entries[i].velocity:
+        if speed:
             break       # a position goes before the speed of its stamp
         i += 1          # a speed goes after the position of its stamp
     if velocity:
@@ -194,7 +203,7 @@ def replay_control(config, controls: Controls, entries: List[Entry], locked_out:
     # Intervals ending after `floor` can be recomputed from the history.
     floor = first.stamp_ns - config.nominal_ns if prior_init else first.stamp_ns
     if stamp_ns <= floor:
-        if first.kind == 'update':  # the states it applied to are no longer kept
+        if first.kind in ('update', 'hold'):  # the states it applied to are no longer kept
             raise Rejected('stale_stamp', (
                 f'control stamp {stamp_ns} ns is older than the oldest state kept to '
                 f'replay from ({floor} ns; history_s = {config.settings.history_s})'))

@@ -76,40 +76,68 @@ def test_held_fixes_are_fused_as_a_standstill(held):
     assert np.nanmedian(stand[standing]) > 0.95
 
 
-def test_a_hold_is_a_hold_whichever_message_of_its_epoch_comes_first(held):
+def _epochs(rows: int, order: str):
+    """Return the messages of ``rows`` epochs as (row, 'fix' or 'speed'), in ``order``."""
+    first = [(0, 'fix'), (0, 'speed')]          # a speed never starts the filter
+    if order == 'fix first':
+        return first + [(k, message) for k in range(1, rows) for message in ('fix', 'speed')]
+    if order == 'speed first':
+        return first + [(k, message) for k in range(1, rows) for message in ('speed', 'fix')]
+    late = [event for k in range(1, rows - 1) for event in ((k + 1, 'speed'), (k, 'fix'))]
+    return first + [(1, 'speed')] + late + [(rows - 1, 'fix')]  # behind the next speed
+
+
+def _fed(held, rows: int, order: str) -> StreamEstimator:
+    """Return an estimator (history_s 1, as the node's) fed fixes and Doppler speeds."""
+    stamps, z, variances, speed = held
+    doppler = speed + 0.05 * np.random.default_rng(3).standard_normal(speed.size)
+    estimator = StreamEstimator(EstimatorSettings(history_s=1.0))
+    for k, message in _epochs(rows, order):
+        try:
+            if message == 'fix':
+                estimator.process(int(stamps[k]), float(z[k]), float(variances[k]))
+            else:
+                estimator.process_velocity(int(stamps[k]), float(doppler[k]), 0.05 ** 2)
+        except Rejected:
+            pass
+    return estimator
+
+
+@pytest.mark.parametrize('order', ['speed first', 'late behind the next speed'])
+def test_a_hold_is_a_hold_whichever_message_of_its_epoch_comes_first(held, order):
     """
     A Doppler published before its fix: the same holds, repeats and states as after it.
 
-    The node keeps a history (history_s 1), where a fix after its epoch's speed is fused
-    before that speed again; its in-order rules (the hold, the repeated epoch) apply.
+    The node keeps a history (history_s 1), where a fix after its epoch's speed (or the
+    next epoch's) is fused before those speeds again, with an in-order fix's rules (the
+    hold, the repeated epoch), as the newest position it is.
     """
-    stamps, z, variances, speed = held
     rows = 1500
-    doppler = speed[:rows] + 0.05 * np.random.default_rng(3).standard_normal(rows)
-    runs = []
-    for speed_first in (False, True):
-        estimator = StreamEstimator(EstimatorSettings(history_s=1.0))
-        for k in range(rows):
-            stamp = int(stamps[k])
-            order = ('speed', 'fix') if speed_first and k else ('fix', 'speed')
-            for message in order:
-                try:
-                    if message == 'fix':
-                        estimator.process(stamp, float(z[k]), float(variances[k]))
-                    else:
-                        estimator.process_velocity(stamp, float(doppler[k]), 0.05 ** 2)
-                except Rejected:
-                    pass
-        runs.append(estimator)
-    first, second = (run.stats() for run in runs)
+    assert sorted(_epochs(rows, order)) == sorted(_epochs(rows, 'fix first'))
+    straight, swapped = _fed(held, rows, 'fix first'), _fed(held, rows, order)
+    first, second = straight.stats(), swapped.stats()
     assert first.holds > 100 and second.holds == first.holds
     assert second.rejections == first.rejections and second.fused == first.fused
     assert second.out_of_sequence == first.fused - 1    # every fix but the first (holds too)
     # The same equations in the same order: the speed's update after a dt of 0 is
     # fused in order by predict_update and replayed as an update, rounding apart.
-    (x1, P1), (x2, P2) = (run.state for run in runs)
+    (x1, P1), (x2, P2) = straight.state, swapped.state
     np.testing.assert_allclose(x2, x1, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(P2, P1, rtol=1e-9, atol=1e-12)
+
+
+def test_a_held_stamp_has_had_its_position(held):
+    """A late copy of a held fix is a duplicate; a late speed of that stamp goes after it."""
+    stamps, z, variances, speed = held
+    k = next(k for k in range(400, z.size) if z[k] == z[k - 1] == z[k - 2])
+    estimator = StreamEstimator(EstimatorSettings(history_s=1.0))
+    _replay(estimator, stamps[:k + 3], z[:k + 3], variances[:k + 3])
+    assert estimator.stats().holds >= 2
+    with pytest.raises(Rejected) as raised:
+        estimator.process(int(stamps[k]), float(z[k]), float(variances[k]))
+    assert raised.value.reason == 'duplicate_stamp'
+    step = estimator.process_velocity(int(stamps[k]), 0.0, 0.05 ** 2)
+    assert step.replayed == 2 and estimator.stats().velocities['out_of_sequence'] == 1
 
 
 def test_a_hold_is_a_speed_of_zero_with_the_hold_variance(held):
