@@ -495,19 +495,11 @@ class Fusion:
             x, P, _, held_z, held_R = held.args
             entry, result, exact = Entry(stamp_ns, held_z, held_R, self.config.velocity_model,
                                          x, P, 'hold', True), None, True
-        try:
-            rebuilt, x, P, u = replay(entries[:i] + [entry], entries[i:], None, self.controls)
-            predicted = self._predict_ahead(x, P, u)
-        except NUMERICAL_ERRORS as error:
-            self._reject_update('numerical', f'replay failed: {error}')
-        self.history.replace(rebuilt)
-        self.x, self.P = x, P
-        self._after_fusion()
+        x, P, predicted = self._replayed(entries, i, entry, None)
         if result is None:
             self.counters.holds += 1    # last_z stays the held position, as in order
         else:
             self.last_z, self.last_variance_m2 = z, float(R[0, 0])
-        self.counters.out_of_sequence += 1
         self.counters.provisional += not exact
         return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
                           replayed=len(entries) - i)
@@ -537,10 +529,17 @@ class Fusion:
                 anchor.x, anchor.P, anchor.stamp_ns, stamp_ns, z, R)
             u = None
             kind = 'update'
-        rebuilt = entries[:i] + [Entry(stamp_ns, z, R, self.config.model, x, P, kind)]
+        # entries[i:] is never empty here: the newest fused stamp is later.
+        x, P, predicted = self._replayed(
+            entries, i, Entry(stamp_ns, z, R, self.config.model, x, P, kind), u)
+        self.counters.provisional += result is not None and not exact
+        return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
+                          replayed=len(entries) - i)
+
+    def _replayed(self, entries: list, i: int, entry: Entry, u) -> tuple:
+        """Put ``entry`` at entries[i], replay the later ones, keep it all; (x, P, ahead)."""
         try:
-            # entries[i:] is never empty here: the newest fused stamp is later.
-            rebuilt, x, P, u = replay(rebuilt, entries[i:], u, self.controls)
+            rebuilt, x, P, u = replay(entries[:i] + [entry], entries[i:], u, self.controls)
             predicted = self._predict_ahead(x, P, u)
         except NUMERICAL_ERRORS as error:
             self._reject_update('numerical', f'replay failed: {error}')
@@ -548,9 +547,7 @@ class Fusion:
         self.x, self.P = x, P
         self._after_fusion()
         self.counters.out_of_sequence += 1
-        self.counters.provisional += result is not None and not exact
-        return self._step(self.last_stamp_ns, x, P, result, predicted, stamp_ns,
-                          replayed=len(entries) - i)
+        return x, P, predicted
 
     def _predict_ahead(self, x: np.ndarray, P: np.ndarray, u=None
                        ) -> Tuple[np.ndarray, np.ndarray]:
